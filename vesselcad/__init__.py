@@ -1,0 +1,41 @@
+"""vesselcad: 3D coronary vessel trees from two X-ray angiography runs, as CAD geometry.
+
+The public API is re-exported here; see docs/ for the geometry convention,
+file formats and the command line.
+"""
+
+from __future__ import annotations
+
+from .errors import (
+    ArgumentError,
+    DecoderError,
+    DicomError,
+    GeometryError,
+    InputFileError,
+    MissingGeometryError,
+    VesselcadError,
+    VesselcadWarning,
+)
+from .geometry import CArmView, Reconstruction2View, reconstruction_error, triangulate
+from .io import XARun, load_run, save_run
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "CArmView",
+    "Reconstruction2View",
+    "XARun",
+    "load_run",
+    "save_run",
+    "triangulate",
+    "reconstruction_error",
+    "VesselcadError",
+    "ArgumentError",
+    "GeometryError",
+    "InputFileError",
+    "DicomError",
+    "MissingGeometryError",
+    "DecoderError",
+    "VesselcadWarning",
+    "__version__",
+]
