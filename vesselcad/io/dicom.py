@@ -361,7 +361,14 @@ def load_dicom_run(path: str | os.PathLike, geometry: Any = None) -> XARun:
 
     See :func:`vesselcad.load_run`, which dispatches here for files.
     """
-    p = Path(path)
+    with warnings.catch_warnings():
+        # pydicom warns about odd but harmless values of real files (non-standard UIDs);
+        # vesselcad's own warnings come from this module and still pass.
+        warnings.filterwarnings("ignore", category=UserWarning, module=r"pydicom\.")
+        return _load_dicom_run(Path(path), geometry)
+
+
+def _load_dicom_run(p: Path, geometry: Any) -> XARun:
     ds = _read_dataset(p)
     _check_is_xa(ds, p)
     geom = _geometry_dict(geometry)
@@ -431,7 +438,7 @@ def save_run(run: XARun, path: str | os.PathLike, *, compress: bool = False) -> 
         The written file.
     """
     from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID, RLELossless
+    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, RLELossless
 
     if not isinstance(run, XARun):
         raise ArgumentError(f"run: expected an XARun, got {type(run).__name__}")
@@ -508,7 +515,7 @@ def save_run(run: XARun, path: str | os.PathLike, *, compress: bool = False) -> 
     pixel_bytes = np.ascontiguousarray(frames).tobytes()
     ds.PixelData = pixel_bytes + (b"\0" if len(pixel_bytes) % 2 else b"")
     if compress:
-        ds.compress(RLELossless)
+        ds.compress(RLELossless, generate_instance_uid=False)
     with atomic_path(path) as tmp:
         ds.save_as(tmp, enforce_file_format=True)
     return Path(path)

@@ -1,0 +1,148 @@
+"""The phantom against its own ground truth: labels, key points, determinism, anatomy ranges."""
+
+import json
+
+import numpy as np
+import pytest
+
+import vesselcad as vc
+from vesselcad.cli import main
+from vesselcad.phantom import LABELS, generate_case, render, write_case
+from vesselcad.phantom.anatomy import make_anatomy
+
+
+@pytest.fixture(scope="module", params=["lca", "rca", "cs"])
+def case(request):
+    return generate_case(11, request.param, n_frames=10)
+
+
+def _tree_samples(tree):
+    return np.concatenate([np.asarray(b["points"]) for b in tree["branches"]])
+
+
+def test_truth_trees_project_onto_vessel_masks(case):
+    truth = case.truth()
+    for tag in ("a", "b"):
+        rr = getattr(case, f"run_{tag}")
+        view = vc.CArmView.from_dict(truth[f"view_{tag}"])
+        i = int(np.argmax((rr.labels == LABELS["vessel"]).sum(axis=(1, 2))))  # fullest opacification
+        px = view.project(_tree_samples(truth[f"trees_{tag}"][i]))
+        ij = np.round(px).astype(int)
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < view.cols) & (ij[:, 1] >= 0) & (ij[:, 1] < view.rows)
+        assert ok.mean() > 0.9  # the tree is in the field of view
+        lab = rr.labels[i][ij[ok, 1], ij[ok, 0]]
+        # Devices lie in front of (or inside) vessels and take their pixels: the catheter
+        # tip in the ostium, the CS catheter up to its balloon. Those samples are few.
+        hidden = lab >= LABELS["catheter"]
+        assert hidden.mean() <= 0.15, (case.anatomy_kind, tag, hidden.mean())
+        on_vessel = lab[~hidden] == LABELS["vessel"]
+        assert on_vessel.mean() >= 0.98, (case.anatomy_kind, tag, on_vessel.mean())
+
+
+def test_keypoints_project_onto_the_stationary_object(case):
+    want = LABELS["balloon"] if case.anatomy_kind == "cs" else LABELS["catheter"]
+    for rr in (case.run_a, case.run_b):
+        ij = np.round(rr.keypoints).astype(int)
+        got = rr.labels[np.arange(len(ij)), ij[:, 1], ij[:, 0]]
+        assert np.all(got == want)
+
+
+def test_keypoints_are_the_projection_of_the_3d_object(case):
+    # Synchronized truth check: the key point of frame i in both runs triangulates with
+    # error ~0 only when the phases match; unsynchronized runs give a clear error.
+    truth = case.truth()
+    va, vb = (vc.CArmView.from_dict(truth[k]) for k in ("view_a", "view_b"))
+    ka, kb = np.asarray(truth["keypoints_a"]), np.asarray(truth["keypoints_b"])
+    err = vc.reconstruction_error(va, ka[:, None], vb, kb[None]).error_mm
+    assert err.shape == (10, 10) and np.all(np.isfinite(err))
+    assert err.max() > 0.5  # runs at different phases do not triangulate consistently
+
+
+def test_error_is_zero_when_synchronized_and_grows_with_phase_offset():
+    c = generate_case(4, "cs", n_frames=40, synchronized=True, rows=128, cols=128)
+    t = c.truth()
+    assert t["phases_a"] == t["phases_b"] and t["trees_a"] == t["trees_b"]
+    va, vb = (vc.CArmView.from_dict(t[k]) for k in ("view_a", "view_b"))
+    ka, kb = np.asarray(t["keypoints_a"]), np.asarray(t["keypoints_b"])
+    err = vc.reconstruction_error(va, ka[:, None], vb, kb[None]).error_mm
+    assert np.diag(err).max() < 1e-3  # truth key points are rounded to 1e-4 px
+    ph = np.asarray(t["phases_a"])
+    circ = lambda d: np.minimum(np.abs(d), 1 - np.abs(d))  # noqa: E731
+    dist = circ(ph[:, None, 0] - ph[None, :, 0]) + circ(ph[:, None, 1] - ph[None, :, 1])
+    bins = [err[(dist >= lo) & (dist < hi)].mean() for lo, hi in ((0, 0.05), (0.05, 0.2), (0.2, 2))]
+    assert bins[0] < bins[1] < bins[2], bins
+
+
+def test_same_seed_same_bytes(tmp_path):
+    for d in ("one", "two"):
+        write_case(generate_case(7, "cs", n_frames=4, rows=96, cols=96), tmp_path / d)
+    names = sorted(p.name for p in (tmp_path / "one").iterdir())
+    assert names == ["labels_a.npz", "labels_b.npz", "run_a.dcm", "run_b.dcm", "truth.json"]
+    for n in names:
+        assert (tmp_path / "one" / n).read_bytes() == (tmp_path / "two" / n).read_bytes(), n
+    other = generate_case(8, "cs", n_frames=4, rows=96, cols=96)
+    assert not np.array_equal(other.run_a.frames, generate_case(7, "cs", n_frames=4, rows=96,
+                                                                cols=96).run_a.frames)
+
+
+def test_written_case_reads_back(tmp_path):
+    c = generate_case(2, "lca", n_frames=6, rows=128, cols=128, bits=12, miscalibration_deg=2.0)
+    write_case(c, tmp_path)
+    run_a = vc.load_run(tmp_path / "run_a.dcm")
+    assert run_a.frames.dtype == np.uint16 and run_a.frames.max() <= 4095 and run_a.bits_stored == 12
+    np.testing.assert_array_equal(run_a.frames, c.run_a.frames)
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert run_a.view == vc.CArmView.from_dict(truth["header_view_a"])
+    true_a = vc.CArmView.from_dict(truth["view_a"])
+    assert abs(run_a.view.primary_deg - true_a.primary_deg) <= 2.0
+    assert abs(run_a.view.secondary_deg - true_a.secondary_deg) <= 2.0
+    assert truth["frames"] == 6 and len(truth["trees_a"]) == 6 and len(truth["keypoints_b"]) == 6
+    tree = truth["trees_a"][0]
+    assert tree["units"] == "mm" and tree["frame"] == "LPS"
+    ph = np.asarray(truth["phases_a"])
+    assert ph.shape == (6, 2) and np.all((ph >= 0) & (ph < 1))
+    labels = np.load(tmp_path / "labels_a.npz")["labels"]
+    assert labels.shape == (6, 128, 128) and set(np.unique(labels)) <= set(range(5))
+    # The R-wave frames in the header are where the cardiac phase wraps.
+    wraps = np.nonzero(np.diff(ph[:, 0]) < 0)[0] + 1
+    known = [] if run_a.r_wave_frames is None else run_a.r_wave_frames.tolist()
+    assert set(wraps) <= set(known)
+
+
+@pytest.mark.parametrize("kind", ["lca", "rca", "cs"])
+def test_anatomy_ranges(kind):
+    for seed in range(6):
+        an = make_anatomy(np.random.default_rng(seed), kind)
+        assert 8 <= len(an.vessels) <= 30
+        radii = np.concatenate([v.radius for v in an.vessels])
+        assert radii.min() >= 0.8 - 1e-9 and radii.max() <= 2.5 + 1e-9
+        for v in an.vessels:
+            if v.parent is not None:  # children start on their parent's centreline
+                np.testing.assert_allclose(v.points[0], an.vessels[v.parent].points[v.parent_index])
+            seg = np.diff(v.points, axis=0)
+            t = seg / np.linalg.norm(seg, axis=1, keepdims=True)
+            turn = np.arccos(np.clip((t[1:] * t[:-1]).sum(1), -1, 1))
+            step = np.linalg.norm(seg, axis=1)[1:]
+            assert np.all(turn / step < 1 / 6.0), v.name  # curvature radius above 6 mm
+
+
+def test_render_api_for_training():
+    rr = render(3, n_frames=2, rows=96, cols=96)
+    assert rr.frames.shape == (2, 96, 96) and rr.labels.shape == (2, 96, 96)
+    assert (rr.labels == LABELS["vessel"]).any()
+
+
+def test_bad_arguments():
+    with pytest.raises(vc.ArgumentError, match="anatomy"):
+        generate_case(1, "aorta")
+    with pytest.raises(vc.ArgumentError, match="bits"):
+        generate_case(1, "lca", bits=10)
+
+
+def test_cli_phantom(tmp_path, capsys):
+    rc = main(["phantom", "--seed", "1", "--out", str(tmp_path), "--anatomy", "rca", "--frames", "3",
+               "--size", "96", "--preview", "--quiet"])
+    assert rc == 0
+    assert {p.name for p in tmp_path.iterdir()} >= {"run_a.dcm", "run_b.dcm", "truth.json",
+                                                     "labels_a.npz", "labels_b.npz", "preview.png"}
+    assert main(["phantom", "--seed", "1", "--out", str(tmp_path), "--frames", "0"]) == 2
