@@ -381,12 +381,34 @@ def _cs(tb: _TreeBuilder, rng: np.random.Generator) -> np.ndarray:
     return ostium
 
 
+def _twigs(tb: _TreeBuilder, rng: np.random.Generator, n: int) -> None:
+    """Short thin side branches off random points of the existing vessels (real trees
+    show many more small branches than the named ones)."""
+    H = tb.heart
+    for k in range(n):
+        if len(tb.vessels) >= 30:
+            return
+        parent = int(rng.integers(len(tb.vessels)))
+        par = tb.vessels[parent]
+        n = len(par.points)
+        ok = np.nonzero(par.radius[int(0.1 * n) : int(0.9 * n)] >= 1.0)[0] + int(0.1 * n)
+        if n < 40 or ok.size == 0:
+            continue
+        f = float(rng.choice(ok)) / (n - 1)
+        s, th = _chart(H, par.points[int(f * (len(par.points) - 1))])
+        target = H.point(float(np.clip(s + rng.uniform(0.1, 0.3), -0.7, 0.95)),
+                         th + rng.choice([-1.0, 1.0]) * rng.uniform(15, 35))
+        tb.child(f"{par.name}-t{k + 1}", parent, f, rng.uniform(40, 75), [target],
+                 rng.uniform(12, 30), (0.5, 0.6), 0.8)
+
+
 def make_anatomy(rng: np.random.Generator, kind: str) -> Anatomy:
     """Random but anatomically plausible tree and devices for ``kind`` in ANATOMIES."""
     heart = _make_heart(rng)
     tb = _TreeBuilder(heart, rng)
     builder = {"lca": _lca, "rca": _rca, "cs": _cs}[kind]
     ostium = builder(tb, rng)
+    _twigs(tb, rng, int(rng.integers(3, 9)))
     vessels = tb.vessels
     anatomy = Anatomy(kind, heart, vessels)
     H = heart

@@ -37,7 +37,7 @@ __all__ = [
 LABELS = {"background": 0, "vessel": 1, "catheter": 2, "balloon": 3, "lead": 4}
 
 # Linear attenuation (1/mm) of what is drawn; iodinated contrast at full strength.
-MU_CONTRAST = 0.30
+MU_CONTRAST = 0.26
 MU_CATHETER = 0.30
 MU_LEAD = 1.6
 MU_BALLOON = 0.16

@@ -1,0 +1,125 @@
+"""Regenerate the pictures in docs/img: ``python docs/make_figures.py``.
+
+- geometry.png: both views' source, detector and isocentre in LPS, with axes.
+- phantom_preview.png: the contact sheet of ``vesselcad phantom --preview``.
+- phantom_vs_real.png: phantom frames next to real angiograms (CIMAT, ARCADE).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+import vesselcad as vc  # noqa: E402
+from vesselcad.phantom import generate_case, write_case  # noqa: E402
+from vesselcad.phantom.preview import overlay  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+REAL = HERE.parents[1] / "shared" / "data" / "xca-real"
+
+
+def _detector_corners(view: vc.CArmView) -> np.ndarray:
+    c = [[0, 0], [view.cols - 1, 0], [view.cols - 1, view.rows - 1], [0, view.rows - 1], [0, 0]]
+    return view.pixel_to_detector(np.asarray(c, float))
+
+
+def geometry_figure(path: Path) -> None:
+    views = {
+        "A: RAO 30 CRA 20": vc.CArmView(primary_deg=-30, secondary_deg=20, sid_mm=1100, sod_mm=750,
+                                        pixel_spacing_mm=(0.4, 0.4), rows=512, cols=512),
+        "B: LAO 45 CAU 20": vc.CArmView(primary_deg=45, secondary_deg=-20, sid_mm=1100, sod_mm=750,
+                                        pixel_spacing_mm=(0.4, 0.4), rows=512, cols=512),
+    }
+    fig = plt.figure(figsize=(10, 5))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    for (name, v), colour in zip(views.items(), ("tab:red", "tab:blue"), strict=True):
+        s, c = v.source, v.detector_centre
+        det = _detector_corners(v)
+        ax.plot(*det.T, color=colour)
+        ax.plot(*np.c_[s, c], color=colour, ls="--", lw=0.8)
+        ax.scatter(*s, color=colour, marker="*", s=80, label=f"{name}: source")
+        # Column (u) and row (v) axes from the first pixel.
+        o = det[0]
+        ax.quiver(*o, *(80 * v.col_axis), color=colour, lw=1.5)
+        ax.quiver(*o, *(80 * v.row_axis), color=colour, lw=1.5, linestyle=":")
+        ax.text(*(o + 90 * v.col_axis), "col", color=colour, fontsize=7)
+        ax.text(*(o + 90 * v.row_axis), "row", color=colour, fontsize=7)
+    ax.scatter(0, 0, 0, color="k", s=20, label="isocentre")
+    for vec, lab in ((np.eye(3)[0], "L (x)"), (np.eye(3)[1], "P (y)"), (np.eye(3)[2], "S (z)")):
+        ax.quiver(0, 0, 0, *(150 * vec), color="k", lw=1)
+        ax.text(*(165 * vec), lab, fontsize=8)
+    ax.set_xlabel("x (mm, patient left)")
+    ax.set_ylabel("y (mm, posterior)")
+    ax.set_zlabel("z (mm, head)")
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=18, azim=-60)
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title("C-arm views in LPS (source *, detector frame)", fontsize=9)
+
+    ax2 = fig.add_subplot(1, 2, 2)
+    pa = vc.CArmView(primary_deg=0, secondary_deg=0, sid_mm=1100, sod_mm=750,
+                     pixel_spacing_mm=(0.4, 0.4), rows=512, cols=512)
+    marks = {"left (+x)": [40, 0, 0], "right (-x)": [-40, 0, 0], "head (+z)": [0, 0, 40],
+             "feet (-z)": [0, 0, -40], "isocentre": [0, 0, 0]}
+    for name, p in marks.items():
+        col, row = pa.project(np.asarray(p, float))
+        ax2.plot(col, row, "o")
+        ax2.annotate(name, (col, row), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    ax2.set_xlim(0, 511)
+    ax2.set_ylim(511, 0)
+    ax2.set_aspect("equal")
+    ax2.set_xlabel("column (px)")
+    ax2.set_ylabel("row (px)")
+    ax2.set_title("PA view (0, 0): patient's left on the image right, head up", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def phantom_vs_real(path: Path) -> None:
+    real_c = [cv2.imread(str(REAL / "train" / f"{k}.png"), 0) for k in (5, 21)]
+    real_a = [cv2.imread(str(REAL / "unlabelled" / f"arcade_{k}.png"), 0) for k in (1, 11)]
+    cases = [generate_case(s, kind, n_frames=12) for s, kind in ((1, "lca"), (2, "cs"), (3, "rca"))]
+    tiles = [("phantom LCA", cases[0].run_a), ("phantom CS", cases[1].run_b), ("phantom RCA", cases[2].run_a)]
+    fig, axes = plt.subplots(2, 4, figsize=(13, 6.8))
+    for ax, (name, rr) in zip(axes[0, :3], tiles, strict=True):
+        i = int(np.argmax((rr.labels == 1).sum(axis=(1, 2))))
+        ax.imshow(rr.frames[i], cmap="gray", vmin=0, vmax=255)
+        ax.set_title(f"{name} (512², frame {i})", fontsize=9)
+    rr = tiles[0][1]
+    i = int(np.argmax((rr.labels == 1).sum(axis=(1, 2))))
+    axes[0, 3].imshow(overlay(rr.frames[i], rr.labels[i]))
+    axes[0, 3].set_title("phantom LCA with labels", fontsize=9)
+    for ax, img, name in zip(axes[1], real_a + real_c, ["real ARCADE 512²", "real ARCADE 512²",
+                                                         "real CIMAT 300²", "real CIMAT 300²"], strict=True):
+        ax.imshow(img, cmap="gray", vmin=0, vmax=255)
+        ax.set_title(name, fontsize=9)
+    for ax in axes.ravel():
+        ax.set_axis_off()
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def main() -> int:
+    out = HERE / "img"
+    out.mkdir(exist_ok=True)
+    geometry_figure(out / "geometry.png")
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = write_case(generate_case(1, "cs", n_frames=40), tmp, preview=True)
+        (out / "phantom_preview.png").write_bytes(Path(paths["preview"]).read_bytes())
+    phantom_vs_real(out / "phantom_vs_real.png")
+    print("wrote", *sorted(p.name for p in out.glob("*.png")))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
