@@ -204,3 +204,18 @@ def test_xarun_validates():
         vc.XARun(frames=np.zeros((2, 8, 8), np.uint8), view=view, frame_times_ms=[0])
     with pytest.raises(vc.ArgumentError, match="frames"):
         vc.XARun(frames=np.zeros((2, 8, 8), np.float32), view=view, frame_times_ms=[0, 1])
+
+
+def test_cli_info_on_the_real_cine(tmp_path, capsys):
+    from vesselcad.cli import main
+
+    assert main(["info", str(CINE)]) == 2
+    err = capsys.readouterr().err
+    assert "DistanceSourceToPatient (0018,1111)" in err and "--geometry" in err
+    view_json = tmp_path / "view.json"
+    view_json.write_text(json.dumps({"sid_mm": 1100, "sod_mm": 750, "pixel_spacing_mm": [0.3, 0.3]}))
+    assert main(["info", str(CINE), "--geometry", str(view_json), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] == 12 and info["frame_time_ms"] == 33.0
+    assert info["view"]["primary_deg"] == 77.0 and info["view"]["sod_mm"] == 750
+    assert info["mm_per_px_isocentre"][0] == pytest.approx(0.3 * 750 / 1100, abs=1e-6)

@@ -79,6 +79,36 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_info(args: argparse.Namespace) -> int:
+    from .io import load_run
+
+    run = load_run(args.run, geometry=args.geometry)
+    v = run.view
+    info = {
+        "source": run.source,
+        "frames": run.n_frames,
+        "rows": v.rows,
+        "cols": v.cols,
+        "bits_stored": run.bits_stored,
+        "frame_time_ms": (round(float(np.median(np.diff(run.frame_times_ms))), 4)
+                          if run.n_frames > 1 else None),
+        "r_wave_frames": None if run.r_wave_frames is None else run.r_wave_frames.tolist(),
+        "view": v.to_dict(),
+        "magnification": round(v.magnification, 6),
+        "mm_per_px_isocentre": [round(x, 6) for x in v.mm_per_px],
+        "source_mm": np.round(v.source, 3).tolist(),
+        "detector_centre_mm": np.round(v.detector_centre, 3).tolist(),
+        "patient_id": run.patient_id,
+        "study_uid": run.study_uid,
+    }
+    if args.json:
+        print(json.dumps(info))
+    else:
+        for key, value in info.items():
+            print(f"{key:22s} {value}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vesselcad", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"vesselcad {__version__}")
@@ -100,6 +130,13 @@ def _parser() -> argparse.ArgumentParser:
     ph.add_argument("--preview", action="store_true", help="also write preview.png")
     ph.add_argument("--quiet", action="store_true")
     ph.set_defaults(func=_cmd_phantom)
+
+    inf = sub.add_parser("info", help="load one run (DICOM or frame folder) and print its geometry")
+    inf.add_argument("run", help="XA DICOM file or folder of frames with view.json")
+    inf.add_argument("--geometry", metavar="VIEW_JSON",
+                     help="view.json whose CArmView entries override or fill the file's tags")
+    inf.add_argument("--json", action="store_true", help="print one JSON object")
+    inf.set_defaults(func=_cmd_info)
 
     de = sub.add_parser("demo", help="generate a phantom case and run the pipeline on it")
     de.add_argument("--out", default="vesselcad-demo", help="output folder (default vesselcad-demo)")
