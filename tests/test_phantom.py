@@ -146,3 +146,7 @@ def test_cli_phantom(tmp_path, capsys):
     assert {p.name for p in tmp_path.iterdir()} >= {"run_a.dcm", "run_b.dcm", "truth.json",
                                                      "labels_a.npz", "labels_b.npz", "preview.png"}
     assert main(["phantom", "--seed", "1", "--out", str(tmp_path), "--frames", "0"]) == 2
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    with pytest.raises(vc.OutputError, match="a_file"):
+        write_case(generate_case(1, "lca", n_frames=1, rows=64, cols=64), blocker / "sub")

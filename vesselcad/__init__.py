@@ -13,6 +13,7 @@ from .errors import (
     GeometryError,
     InputFileError,
     MissingGeometryError,
+    OutputError,
     VesselcadError,
     VesselcadWarning,
 )
@@ -36,6 +37,7 @@ __all__ = [
     "DicomError",
     "MissingGeometryError",
     "DecoderError",
+    "OutputError",
     "VesselcadWarning",
     "__version__",
 ]

@@ -17,6 +17,7 @@ __all__ = [
     "DicomError",
     "MissingGeometryError",
     "DecoderError",
+    "OutputError",
     "VesselcadWarning",
 ]
 
@@ -57,6 +58,10 @@ class MissingGeometryError(DicomError):
 
 class DecoderError(DicomError):
     """No installed pixel decoder can decode the file's transfer syntax."""
+
+
+class OutputError(VesselcadError, OSError):
+    """An output file or folder cannot be created or written."""
 
 
 class VesselcadWarning(UserWarning):

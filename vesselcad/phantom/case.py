@@ -14,7 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..errors import ArgumentError
+from ..errors import ArgumentError, OutputError
 from ..geometry import CArmView
 from ..io.atomic import atomic_write_bytes, atomic_write_text
 from ..io.dicom import _uid, save_run
@@ -518,7 +518,10 @@ def write_case(case: PhantomCase, out_dir: str | os.PathLike, *, preview: bool =
     overlays). Every file is written atomically. Returns the written paths.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
     run_a, run_b = case.xa_runs()
     paths = {
         "run_a": save_run(run_a, out / "run_a.dcm"),
