@@ -2,6 +2,8 @@
 
 import json
 import math
+import shutil
+import subprocess
 from pathlib import Path
 
 import cv2
@@ -219,3 +221,17 @@ def test_cli_info_on_the_real_cine(tmp_path, capsys):
     assert info["frames"] == 12 and info["frame_time_ms"] == 33.0
     assert info["view"]["primary_deg"] == 77.0 and info["view"]["sod_mm"] == 750
     assert info["mm_per_px_isocentre"][0] == pytest.approx(0.3 * 750 / 1100, abs=1e-6)
+
+
+@pytest.mark.skipif(shutil.which("dciodvfy") is None, reason="dicom3tools' dciodvfy not installed")
+@pytest.mark.parametrize("variant", ["plain", "rle", "frame_time_vector", "12bit"])
+def test_written_files_pass_the_dicom3tools_iod_verifier(tmp_path, variant):
+    run = make_run(dtype=np.uint16, bits=12) if variant == "12bit" else make_run()
+    if variant == "frame_time_vector":
+        run.frame_times_ms = np.array([0.0, 30.0, 70.0, 100.0, 150.0])
+    path = vc.save_run(run, tmp_path / "r.dcm", compress=variant == "rle")
+    out = subprocess.run(["dciodvfy", str(path)], capture_output=True, text=True)
+    report = (out.stdout + out.stderr).splitlines()
+    assert "XAImage" in report
+    problems = [line for line in report if line.startswith(("Error", "Warning")) and "DICOMDIR" not in line]
+    assert problems == []
