@@ -235,3 +235,12 @@ def test_written_files_pass_the_dicom3tools_iod_verifier(tmp_path, variant):
     assert "XAImage" in report
     problems = [line for line in report if line.startswith(("Error", "Warning")) and "DICOMDIR" not in line]
     assert problems == []
+
+
+def test_view_from_a_pydicom_dataset(tmp_path):
+    run = make_run()
+    path = vc.save_run(run, tmp_path / "r.dcm")
+    assert vc.CArmView.from_dicom(pydicom.dcmread(path)) == run.view
+    ds = pydicom.dcmread(CINE, stop_before_pixels=True)
+    view = vc.CArmView.from_dicom(ds, geometry=GEOM)
+    assert (view.primary_deg, view.secondary_deg, view.rows, view.cols) == (77.0, -45.0, 512, 512)

@@ -150,3 +150,15 @@ def test_cli_phantom(tmp_path, capsys):
     blocker.write_text("x")
     with pytest.raises(vc.OutputError, match="a_file"):
         write_case(generate_case(1, "lca", n_frames=1, rows=64, cols=64), blocker / "sub")
+
+
+def test_children_start_on_their_parent_in_every_frame(case):
+    for tree in (case.truth()["trees_a"][0], case.truth()["trees_b"][-1]):
+        branches = tree["branches"]
+        for b in branches:
+            if b["parent"] is None:
+                continue
+            parent = np.asarray(branches[b["parent"]]["points"])
+            gap = np.linalg.norm(parent - np.asarray(b["points"][0]), axis=1).min()
+            assert gap < 0.6  # parent polyline stored every 1 mm; the start lies on its curve
+            assert 0 <= b["parent_s_mm"] <= len(parent) + 1

@@ -330,7 +330,7 @@ def _render_run(anat: Anatomy, view: CArmView, phases: np.ndarray, times_ms: np.
             idx = truth_idx[k]
             branches.append({
                 "id": k, "parent": v.parent, "name": v.name,
-                "parent_point": None if v.parent is None else int(v.parent_index),
+                "parent_s_mm": None if v.parent is None else round(v.parent_index * STEP_MM, 4),
                 "points": np.round(moved[k][idx], 4).tolist(),
                 "radius": np.round(v.radius[idx], 4).tolist(),
             })
