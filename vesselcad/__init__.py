@@ -19,6 +19,7 @@ from .errors import (
 )
 from .geometry import CArmView, Reconstruction2View, reconstruction_error, triangulate
 from .io import XARun, load_run, save_run
+from .phase import PhaseError, PhaseMatch, match_phase
 
 __version__ = "0.1.0"
 
@@ -28,6 +29,9 @@ __all__ = [
     "XARun",
     "load_run",
     "save_run",
+    "match_phase",
+    "PhaseMatch",
+    "PhaseError",
     "triangulate",
     "reconstruction_error",
     "VesselcadError",

@@ -338,8 +338,12 @@ def _render_run(anat: Anatomy, view: CArmView, phases: np.ndarray, times_ms: np.
         keypoints.append(view.project(move(anat.keypoint)))
         if progress is not None:
             progress.update(1)
-    r_wave = np.nonzero(np.diff(np.mod(phases[:, 0], 1.0)) < 0)[0] + 1
-    if n and np.mod(phases[0, 0], 1.0) < 0.5 * np.median(np.diff(phases[:, 0]) if n > 1 else [1]):
+    # RWavePointer: the frame nearest to each R-wave (cardiac phase wrapping through 0).
+    ph_c = np.mod(phases[:, 0], 1.0)
+    after = np.nonzero(np.diff(ph_c) < 0)[0] + 1
+    r_wave = np.where(ph_c[after] <= 1.0 - ph_c[after - 1], after, after - 1)
+    step = float(np.median(np.diff(phases[:, 0]))) if n > 1 else 1.0
+    if n and ph_c[0] < 0.5 * step and (r_wave.size == 0 or r_wave[0] != 0):
         r_wave = np.r_[0, r_wave]
     return RenderedRun(frames, labels, view, np.asarray(times_ms, float), phases, trees,
                        np.asarray(keypoints), r_wave.astype(np.int64), bits)

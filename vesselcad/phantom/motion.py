@@ -1,8 +1,9 @@
 """Cardiac and respiratory motion of the phantom.
 
 Cardiac phase 0 is end-diastole (R-wave); the heart contracts radially toward
-its long axis, shortens toward the base and twists about the long axis
-(apex more than base) during systole (about the first 35 % of the cycle),
+its long axis, shortens with the base (the atrioventricular plane) descending
+toward the nearly still apex, and twists about the long axis (apex more than
+base) during systole (about the first 35 % of the cycle),
 relaxes until 60 %, and rests in diastasis. Respiratory phase 0 is
 end-expiration; inspiration moves the heart caudally (and slightly
 anteriorly) by the respiratory amplitude. Displacements are vectorised over
@@ -72,7 +73,8 @@ def deform(points: np.ndarray, heart: Heart, cardiac_phase: float, resp_phase: f
     cos_t, sin_t = np.cos(theta)[..., None], np.sin(theta)[..., None]
     radial_rot = radial * cos_t + np.cross(heart.e1, radial) * sin_t
     radial_new = (1.0 - params.radial * c) * radial_rot
-    along_new = -heart.a + (along + heart.a) * (1.0 - params.longitudinal * c)
+    # The apex stays nearly still; the base (AV plane) descends toward it (10-15 mm).
+    along_new = heart.a - (heart.a - along) * (1.0 - params.longitudinal * c)
     moved = heart.centre + along_new[..., None] * heart.e1 + radial_new
     # Fade the cardiac displacement out beyond the heart (normalised radius 1.3 -> 2.5).
     q = heart.to_local(points)

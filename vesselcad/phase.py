@@ -1,0 +1,560 @@
+"""Motion phase matching (paper §2.3): the frame pair of two runs at the same motion phase.
+
+A stationary object (the centre of an injection/occlusion balloon, or the tip
+of a catheter or pacing lead) is located in every frame of both runs from the
+segmentation labels. Its key points are triangulated for every frame pair
+(mid-point of the shortest segment between the two rays) and reprojected;
+the pair's error is the larger of the two 2D errors in mm at the isocentre.
+The pair with the least error is at the same cardiac and respiratory phase.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import ArgumentError, VesselcadError
+from .geometry import CArmView, reconstruction_error
+from .io.atomic import atomic_path
+from .io.run import XARun
+
+__all__ = [
+    "PhaseError",
+    "PhaseMatch",
+    "KeyPointTrack",
+    "OBJECTS",
+    "find_keypoints",
+    "error_matrix",
+    "diagonal_mean",
+    "match_phase",
+    "ecg_phase",
+    "plot_error_matrix",
+]
+
+#: Stationary objects, their label value and key point.
+OBJECTS = {"balloon": 3, "catheter": 2, "lead": 4}
+_VESSEL = 1
+_IN_PLANE = np.zeros((3, 3, 3), bool)
+_IN_PLANE[1] = True  # 8-connectivity within a frame, never across frames
+
+
+class PhaseError(VesselcadError, ValueError):
+    """No usable stationary object, or no eligible frame pair."""
+
+
+@dataclass
+class KeyPointTrack:
+    """Key points of one stationary object in every frame of a run.
+
+    Attributes
+    ----------
+    object : str
+        'balloon', 'catheter' or 'lead'.
+    points_px : numpy.ndarray, shape (N, 2)
+        ``(col, row)`` per frame; NaN where the object is missing or ambiguous.
+    reason : list of str
+        Per frame, '' when found, else why not ('absent', 'ambiguous', 'too small', 'no free end').
+    """
+
+    object: str
+    points_px: np.ndarray
+    reason: list[str]
+
+    @property
+    def found(self) -> np.ndarray:
+        """Boolean mask of frames with a key point."""
+        return np.all(np.isfinite(self.points_px), axis=1)
+
+
+@dataclass
+class PhaseMatch:
+    """The result of motion phase matching.
+
+    Attributes
+    ----------
+    frame_a, frame_b : int
+        The chosen frame pair.
+    error_mm, error_px : float
+        Its reconstruction error (paper §2.3).
+    matrix : numpy.ndarray, shape (N_A, N_B)
+        Reconstruction error of every pair in mm (NaN where a key point is missing).
+    score : numpy.ndarray, shape (N_A, N_B)
+        What the pair is chosen by: ``matrix`` averaged along the diagonal
+        over ``match_phase``'s ``window`` (equal to ``matrix`` for window 0).
+    objects : list of str
+        The stationary object(s) used; with several, a pair's error is the largest.
+    keypoints_a, keypoints_b : dict of str to (N, 2) arrays
+        Key points per object.
+    eligible_a, eligible_b : numpy.ndarray of bool
+        Frames allowed by the contrast (and ECG) restrictions.
+    runner_up : (int, int) or None
+        Best pair outside the chosen pair's +-1 frame neighbourhood.
+    runner_up_error_mm, margin_mm : float
+        Its score and the margin to the chosen pair's score (NaN without a runner-up).
+    confidence : float
+        ``1 - score / runner_up_score`` in [0, 1]: 0 ambiguous, 1 unique.
+    point_mm : numpy.ndarray, shape (3,)
+        The triangulated key point of the (first) object at the chosen pair.
+    warnings : list of str
+    """
+
+    frame_a: int
+    frame_b: int
+    error_mm: float
+    error_px: float
+    matrix: np.ndarray
+    score: np.ndarray
+    objects: list[str]
+    keypoints_a: dict[str, np.ndarray]
+    keypoints_b: dict[str, np.ndarray]
+    eligible_a: np.ndarray
+    eligible_b: np.ndarray
+    runner_up: tuple[int, int] | None
+    runner_up_error_mm: float
+    margin_mm: float
+    confidence: float
+    point_mm: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able summary (without the matrix)."""
+        return {
+            "frame_a": self.frame_a, "frame_b": self.frame_b,
+            "error_mm": round(self.error_mm, 4), "error_px": round(self.error_px, 4),
+            "objects": self.objects,
+            "runner_up": None if self.runner_up is None else list(self.runner_up),
+            "runner_up_error_mm": None if not np.isfinite(self.runner_up_error_mm)
+            else round(self.runner_up_error_mm, 4),
+            "margin_mm": None if not np.isfinite(self.margin_mm) else round(self.margin_mm, 4),
+            "confidence": round(self.confidence, 4),
+            "eligible_frames_a": int(self.eligible_a.sum()), "eligible_frames_b": int(self.eligible_b.sum()),
+            "point_mm": np.round(self.point_mm, 3).tolist(),
+            "warnings": list(self.warnings),
+        }
+
+
+# ---------------------------------------------------------------- key points
+def _check_labels(labels: Any, name: str) -> np.ndarray:
+    arr = np.asarray(labels)
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[0] == 0 or not np.issubdtype(arr.dtype, np.integer):
+        raise ArgumentError(f"{name}: expected integer label maps of shape (N, H, W), got "
+                            f"{arr.dtype} {arr.shape}")
+    return arr
+
+
+def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    return ndimage.label(mask, structure=_IN_PLANE)
+
+
+def _balloon_centres(labels: np.ndarray, min_area_px: int) -> tuple[np.ndarray, list[str]]:
+    """Centroid of the largest balloon component per frame (all frames at once)."""
+    n = labels.shape[0]
+    comp, k = _components(labels == OBJECTS["balloon"])
+    out = np.full((n, 2), np.nan)
+    reason = ["absent"] * n
+    if k == 0:
+        return out, reason
+    f_, r_, c_ = np.nonzero(comp)
+    ids = comp[f_, r_, c_]
+    area = np.bincount(ids, minlength=k + 1)[1:].astype(np.float64)
+    centre = np.stack([np.bincount(ids, weights=v, minlength=k + 1)[1:] for v in (f_, r_, c_)], 1)
+    centre /= area[:, None]
+    frame = centre[:, 0].round().astype(int)
+    order = np.lexsort((-area, frame))  # per frame, largest first
+    frame_s, area_s, centre_s = frame[order], area[order], centre[order]
+    first = np.r_[True, frame_s[1:] != frame_s[:-1]]
+    second = np.r_[False, first[:-1]] & ~first  # the runner-up component of a frame
+    big = dict(zip(frame_s[first], zip(area_s[first], centre_s[first], strict=True), strict=True))
+    runner = dict(zip(frame_s[second], area_s[second], strict=True))
+    for f, (a, c) in big.items():
+        if a < min_area_px:
+            reason[f] = "too small"
+        elif runner.get(f, 0.0) > 0.5 * a:
+            reason[f] = "ambiguous"  # two balloon-sized blobs: do not guess
+        else:
+            out[f] = (c[2], c[1])  # (col, row)
+            reason[f] = ""
+    return out, reason
+
+
+def _sample(mask: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a float mask at (col, row) points."""
+    m = mask.astype(np.float32)
+    return ndimage.map_coordinates(m, [pts[:, 1], pts[:, 0]], order=1, mode="constant", cval=0.0)
+
+
+def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tuple[np.ndarray | None, str]:
+    """Sub-pixel distal tip of a tubular device in one frame.
+
+    The tip is the free end of the skeleton farthest (along the skeleton) from
+    where the device leaves the image; it is refined by following the end
+    direction to the mask boundary and stepping back one local radius (the
+    device ends in a round cap).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components, dijkstra
+    from skimage.morphology import skeletonize
+
+    mask = frame == value
+    rows, cols = np.nonzero(mask)
+    if rows.size < min_length_px:
+        return None, "absent" if rows.size == 0 else "too small"
+    # Devices drawn on top of this one (a lead crossing the catheter) cut its mask: skeletonize
+    # the union of all devices so the pieces stay connected, then keep only free ends that lie
+    # on this device away from the others.
+    devices = np.isin(frame, list(OBJECTS.values()))
+    rows, cols = np.nonzero(devices)
+    r0, r1 = max(rows.min() - 2, 0), min(rows.max() + 3, mask.shape[0])
+    c0, c1 = max(cols.min() - 2, 0), min(cols.max() + 3, mask.shape[1])
+    sub = mask[r0:r1, c0:c1]
+    others = ndimage.binary_dilation(devices[r0:r1, c0:c1] & ~sub, iterations=3)
+    skel = skeletonize(devices[r0:r1, c0:c1])
+    sr, sc = np.nonzero(skel)
+    if sr.size < 2:
+        return None, "too small"
+    index = -np.ones(skel.shape, np.int64)
+    index[sr, sc] = np.arange(sr.size)
+    src, dst, wts = [], [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        rr, cc = sr + dr, sc + dc
+        ok = (rr >= 0) & (rr < skel.shape[0]) & (cc >= 0) & (cc < skel.shape[1])
+        j = np.full(sr.size, -1)
+        j[ok] = index[rr[ok], cc[ok]]
+        hit = j >= 0
+        src.append(np.nonzero(hit)[0])
+        dst.append(j[hit])
+        wts.append(np.full(hit.sum(), np.hypot(dr, dc)))
+    src, dst, wts = np.concatenate(src), np.concatenate(dst), np.concatenate(wts)
+    graph = coo_matrix((np.r_[wts, wts], (np.r_[src, dst], np.r_[dst, src])), shape=(sr.size,) * 2).tocsr()
+    degree = np.diff(graph.indptr)
+    _, comp = connected_components(graph, directed=False)
+    gr, gc = sr + r0, sc + c0
+    # Skeletons stop about one radius short of where the mask meets the image edge.
+    dt = ndimage.distance_transform_edt(np.pad(sub, 1))[1:-1, 1:-1]
+    border = border + int(np.ceil(dt.max()))
+    at_border = (gr < border) | (gc < border) | (gr >= mask.shape[0] - border) | (
+        gc >= mask.shape[1] - border)
+    # A device enters the image at its border; its pieces that do (the projection can
+    # split it, e.g. the aortic arch above the field) lead to the free distal end.
+    entering = np.isin(comp, np.unique(comp[at_border]))
+    ends = np.nonzero(entering & (degree == 1) & ~at_border & sub[sr, sc] & ~others[sr, sc])[0]
+    if not at_border.any():
+        return None, "ambiguous"  # both ends inside the image: which is distal is unknown
+    if ends.size == 0:
+        return None, "no free end"
+    dist, pred, _ = dijkstra(graph, directed=False, indices=np.nonzero(at_border)[0], min_only=True,
+                             return_predecessors=True)
+    tip = ends[np.argmax(np.where(np.isfinite(dist[ends]), dist[ends], -1))]
+    if not np.isfinite(dist[tip]):
+        return None, "no free end"
+    # Walk back along the skeleton to get the end direction and the local radius.
+    path = [tip]
+    while len(path) < 10 and pred[path[-1]] >= 0:
+        path.append(pred[path[-1]])
+    p_tip = np.array([gc[tip], gr[tip]], float)
+    p_back = np.array([gc[path[-1]], gr[path[-1]]], float)
+    direction = p_tip - p_back
+    if np.linalg.norm(direction) < 1e-6:
+        return None, "too small"
+    direction /= np.linalg.norm(direction)
+    mid = path[min(4, len(path) - 1)]
+    radius = float(dt[sr[mid], sc[mid]])
+    steps = np.arange(0.0, 4.0 * radius + 4.0, 0.1)
+    ray = p_tip + steps[:, None] * direction
+    inside = _sample(mask, ray) >= 0.5
+    last = int(np.argmin(inside)) if not inside.all() else len(steps) - 1
+    boundary = ray[max(last - 1, 0)] + 0.05 * direction  # half a step past the last inside sample
+    # A round cap ends half a pixel beyond the last covered pixel centre, one radius past its centre.
+    return boundary + (0.5 - radius) * direction, ""
+
+
+def find_keypoints(labels: Any, obj: str, *, min_area_px: int = 12, border_px: int = 4) -> KeyPointTrack:
+    """Key points of a stationary object in every frame of a label stack.
+
+    Parameters
+    ----------
+    labels : array_like, shape (N, H, W)
+        Segmentation labels (0 background, 1 vessel, 2 catheter, 3 balloon, 4 lead).
+    obj : {'balloon', 'catheter', 'lead'}
+        The balloon gives the centroid of its largest component (sub-pixel);
+        a catheter or lead gives its distal tip (sub-pixel, see ``_tip``).
+    min_area_px : int
+        Smaller objects count as absent.
+    border_px : int
+        Skeleton pixels this close to the image edge are where a device enters.
+
+    Returns
+    -------
+    KeyPointTrack
+        NaN and a reason in frames where the object is missing or ambiguous.
+    """
+    lab = _check_labels(labels, "labels")
+    if obj not in OBJECTS:
+        raise ArgumentError(f"obj: expected one of {list(OBJECTS)}, got {obj!r}")
+    if obj == "balloon":
+        pts, reason = _balloon_centres(lab, min_area_px)
+        return KeyPointTrack(obj, pts, reason)
+    pts = np.full((lab.shape[0], 2), np.nan)
+    reason = []
+    for i in range(lab.shape[0]):  # one skeleton per frame
+        p, why = _tip(lab[i], OBJECTS[obj], border_px, min_area_px)
+        if p is not None:
+            pts[i] = p
+        reason.append(why)
+    return KeyPointTrack(obj, pts, reason)
+
+
+# ------------------------------------------------------------ error matrix
+def error_matrix(view_a: CArmView, points_a_px: Any, view_b: CArmView, points_b_px: Any) -> np.ndarray:
+    """Reconstruction error (mm at the isocentre) of every key point pair, shape (N_A, N_B).
+
+    Vectorised: one broadcast triangulation of all pairs; NaN where a key point is NaN.
+    """
+    pa = np.asarray(points_a_px, dtype=np.float64)
+    pb = np.asarray(points_b_px, dtype=np.float64)
+    return reconstruction_error(view_a, pa[:, None, :], view_b, pb[None, :, :]).error_mm
+
+
+def ecg_phase(run: XARun) -> np.ndarray | None:
+    """Cardiac phase in [0, 1) per frame from the run's R-waves, or None.
+
+    Linear in time between consecutive R-waves; before the first and after the
+    last R-wave the mean RR interval is used. Needs at least two R-waves.
+    """
+    if run.r_wave_frames is None or len(run.r_wave_frames) < 2:
+        return None
+    t = run.frame_times_ms
+    tr = t[np.asarray(run.r_wave_frames)]
+    rr = float(np.mean(np.diff(tr)))
+    if rr <= 0:
+        return None
+    n_before = int(np.ceil((tr[0] - t[0]) / rr)) + 1
+    n_after = int(np.ceil((t[-1] - tr[-1]) / rr)) + 1
+    knots = np.r_[tr[0] - rr * np.arange(n_before, 0, -1), tr, tr[-1] + rr * np.arange(1, n_after + 1)]
+    k = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(knots) - 2)
+    return np.mod((t - knots[k]) / (knots[k + 1] - knots[k]), 1.0)
+
+
+def diagonal_mean(matrix: np.ndarray, window: int) -> np.ndarray:
+    """Mean of ``matrix`` over ``(i + k, j + k)`` for ``k`` in ``[-window, window]``.
+
+    Pairs in phase stay in phase when both runs advance a frame (at similar
+    frame and heart rates), while a pair whose single key point agrees by
+    coincidence does not: the mean along the diagonal rejects coincidences.
+    NaN and out-of-range entries are ignored; fewer than ``window + 1`` valid
+    entries give NaN.
+    """
+    if window <= 0:
+        return matrix.copy()
+    n_a, n_b = matrix.shape
+    padded = np.full((n_a + 2 * window, n_b + 2 * window), np.nan)
+    padded[window:window + n_a, window:window + n_b] = matrix
+    stack = np.stack([padded[window + k:window + k + n_a, window + k:window + k + n_b]
+                      for k in range(-window, window + 1)])
+    count = np.isfinite(stack).sum(axis=0)
+    total = np.nansum(stack, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = total / count
+    return np.where((count >= window + 1) & np.isfinite(matrix), out, np.nan)
+
+
+def _contrast_eligible(labels: np.ndarray, share: float) -> np.ndarray:
+    area = (labels == _VESSEL).sum(axis=(1, 2))
+    if area.max() == 0:
+        return np.ones(labels.shape[0], bool)  # no vessel class: nothing to restrict on
+    return area >= share * area.max()
+
+
+def match_phase(
+    run_a: XARun,
+    run_b: XARun,
+    labels_a: Any,
+    labels_b: Any,
+    *,
+    objects: str | Sequence[str] = "auto",
+    min_contrast: float = 0.5,
+    use_ecg: bool = True,
+    ecg_tolerance: float = 0.15,
+    pair: tuple[int, int] | None = None,
+    window: int = 4,
+) -> PhaseMatch:
+    """Choose the frame pair of two runs at the same motion phase (paper §2.3).
+
+    Parameters
+    ----------
+    run_a, run_b : XARun
+        The two runs (their views give the projection geometry).
+    labels_a, labels_b : array_like, shape (N, H, W)
+        Segmentation labels of every frame (``vc.Segmenter()(run.frames)``).
+    objects : 'auto', str or sequence of str
+        Stationary object(s): 'balloon', 'catheter', 'lead'. 'auto' takes the
+        first of these found in at least a quarter of the frames of both runs.
+        With several objects a pair's error is the largest over them.
+    min_contrast : float
+        Only frames whose vessel area is at least this share of the run's
+        largest are eligible, so the chosen pair shows filled vessels (0: all).
+    use_ecg : bool
+        When both runs carry ECG R-waves (RWavePointer), only pairs whose ECG
+        cardiac phases differ by at most ``ecg_tolerance`` (cycle fraction)
+        are eligible, if any such pair has key points.
+    pair : (int, int), optional
+        Force this frame pair (its error is still reported).
+    window : int
+        The pair is chosen by the mean error over ``(i + k, j + k)``,
+        ``|k| <= window`` (see :func:`diagonal_mean`): a single key point
+        constrains only its motion across the epipolar plane, so some pair at
+        another phase often agrees by coincidence; its neighbours do not.
+        ``window=0`` is the paper's choice by the single pair's error.
+
+    Returns
+    -------
+    PhaseMatch
+
+    Raises
+    ------
+    PhaseError
+        No requested object is found in both runs, or no eligible pair has key points.
+    """
+    for name, run in (("run_a", run_a), ("run_b", run_b)):
+        if not isinstance(run, XARun):
+            raise ArgumentError(f"{name}: expected an XARun, got {type(run).__name__}")
+    la, lb = _check_labels(labels_a, "labels_a"), _check_labels(labels_b, "labels_b")
+    for name, lab, run in (("labels_a", la, run_a), ("labels_b", lb, run_b)):
+        if lab.shape != run.frames.shape:
+            raise ArgumentError(f"{name}: shape {lab.shape} does not match the run's frames "
+                                f"{run.frames.shape}")
+    if isinstance(window, bool) or int(window) != window or window < 0:
+        raise ArgumentError(f"window: expected a non-negative integer, got {window!r}")
+    window = int(window)
+    if not 0.0 <= min_contrast <= 1.0:
+        raise ArgumentError(f"min_contrast: expected a share in [0, 1], got {min_contrast}")
+    if objects == "auto":
+        wanted = list(OBJECTS)
+    elif isinstance(objects, str):
+        wanted = [objects]
+    else:
+        wanted = list(objects)
+    bad = [o for o in wanted if o not in OBJECTS]
+    if bad or not wanted:
+        raise ArgumentError(f"objects: expected 'auto' or some of {list(OBJECTS)}, got {objects!r}")
+
+    warnings_: list[str] = []
+    tracks_a, tracks_b = {}, {}
+    for obj in wanted:
+        present_a = (la == OBJECTS[obj]).any(axis=(1, 2)).mean()
+        present_b = (lb == OBJECTS[obj]).any(axis=(1, 2)).mean()
+        if objects == "auto" and (present_a < 0.25 or present_b < 0.25):
+            continue
+        ta, tb = find_keypoints(la, obj), find_keypoints(lb, obj)
+        if ta.found.any() and tb.found.any():
+            tracks_a[obj], tracks_b[obj] = ta, tb
+            if objects == "auto":
+                break
+        elif objects != "auto":
+            missing = "run A" if not ta.found.any() else "run B"
+            raise PhaseError(f"objects: no {obj} key point found in any frame of {missing}")
+    if not tracks_a:
+        raise PhaseError(
+            f"labels_a/labels_b: no stationary object ({', '.join(wanted)}) found in both runs; "
+            "motion phase matching needs a balloon, catheter or lead visible in both (or pass pair=)")
+    used = list(tracks_a)
+    mats = [error_matrix(run_a.view, tracks_a[o].points_px, run_b.view, tracks_b[o].points_px)
+            for o in used]
+    matrix = mats[0] if len(mats) == 1 else np.max(np.stack(mats), axis=0)
+
+    score = diagonal_mean(matrix, window)
+    elig_a, elig_b = _contrast_eligible(la, min_contrast), _contrast_eligible(lb, min_contrast)
+    allowed = elig_a[:, None] & elig_b[None, :] & np.isfinite(score)
+    if use_ecg:
+        pa, pb = ecg_phase(run_a), ecg_phase(run_b)
+        if pa is not None and pb is not None:
+            d = np.abs(pa[:, None] - pb[None, :])
+            ecg_ok = np.minimum(d, 1 - d) <= ecg_tolerance
+            if (allowed & ecg_ok).any():
+                allowed &= ecg_ok
+            else:
+                warnings_.append("ECG phases leave no pair with key points; ECG restriction ignored")
+    if not allowed.any():
+        if not (elig_a[:, None] & elig_b[None, :]).any() or not np.isfinite(matrix).any():
+            raise PhaseError("labels_a/labels_b: no frame pair has key points in both runs among the "
+                             "eligible frames; lower min_contrast or pass pair=")
+        raise PhaseError("no eligible frame pair: check min_contrast and the ECG restriction")
+    n_a, n_b = matrix.shape
+    if pair is not None:
+        i, j = int(pair[0]), int(pair[1])
+        if not (0 <= i < n_a and 0 <= j < n_b):
+            raise ArgumentError(f"pair: ({i}, {j}) is outside the runs' {n_a} x {n_b} frames")
+        if not np.isfinite(matrix[i, j]):
+            warnings_.append(f"forced pair ({i}, {j}) has no key point in one of the frames")
+    else:
+        masked = np.where(allowed, score, np.inf)
+        i, j = (int(x) for x in np.unravel_index(np.argmin(masked), masked.shape))
+    masked = np.where(allowed, score, np.inf)
+    near = np.zeros_like(allowed)
+    near[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2] = True
+    rest = np.where(near, np.inf, masked)
+    runner: tuple[int, int] | None = None
+    runner_err = float("nan")
+    if np.isfinite(rest).any():
+        ri, rj = (int(x) for x in np.unravel_index(np.argmin(rest), rest.shape))
+        runner, runner_err = (ri, rj), float(rest[ri, rj])
+    best = float(matrix[i, j])
+    best_score = float(score[i, j])
+    margin = runner_err - best_score if runner is not None else float("nan")
+    confidence = (float(np.clip(1.0 - best_score / runner_err, 0.0, 1.0)) if runner is not None
+                  and runner_err > 0 else (1.0 if runner is None else 0.0))
+    rec = reconstruction_error(run_a.view, tracks_a[used[0]].points_px[i], run_b.view,
+                               tracks_b[used[0]].points_px[j])
+    if runner is not None and confidence < 0.2:
+        warnings_.append(f"ambiguous phase match: runner-up pair {runner} is only {margin:.3f} mm worse")
+    return PhaseMatch(
+        frame_a=i, frame_b=j, error_mm=best, error_px=float(rec.error_px), matrix=matrix, score=score,
+        objects=used,
+        keypoints_a={o: t.points_px for o, t in tracks_a.items()},
+        keypoints_b={o: t.points_px for o, t in tracks_b.items()},
+        eligible_a=elig_a, eligible_b=elig_b, runner_up=runner, runner_up_error_mm=runner_err,
+        margin_mm=margin, confidence=confidence, point_mm=np.asarray(rec.points_mm), warnings=warnings_,
+    )
+
+
+def plot_error_matrix(match: PhaseMatch, path: str | os.PathLike, *, title: str = "") -> Path:
+    """Heat map of the error matrix (like the paper's Fig. 2b), chosen pair marked. Atomic PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    m = match.matrix
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    finite = m[np.isfinite(m)]
+    vmax = float(np.percentile(finite, 95)) if finite.size else 1.0
+    im = ax.imshow(m, cmap="viridis", vmin=0.0, vmax=vmax, origin="upper", aspect="auto",
+                   interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="reconstruction error (mm)")
+    shade = ~(match.eligible_a[:, None] & match.eligible_b[None, :])
+    ax.imshow(np.ma.masked_where(~shade, np.ones_like(m)), cmap="Greys", alpha=0.35, vmin=0, vmax=1,
+              aspect="auto", interpolation="nearest")
+    ax.plot(match.frame_b, match.frame_a, "o", ms=12, mfc="none", mec="red", mew=2,
+            label=f"chosen ({match.frame_a}, {match.frame_b}): {match.error_mm:.3f} mm")
+    if match.runner_up is not None:
+        ax.plot(match.runner_up[1], match.runner_up[0], "x", ms=9, color="white", mew=2,
+                label=f"runner-up {match.runner_up}: {match.runner_up_error_mm:.3f} mm")
+    ax.set_xlabel("frame of run B")
+    ax.set_ylabel("frame of run A")
+    ax.set_title(title or f"motion phase error matrix ({', '.join(match.objects)}); grey: not eligible",
+                 fontsize=9)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    return Path(path)
+
