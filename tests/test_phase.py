@@ -114,3 +114,18 @@ def test_unsynchronized_matching_beats_frame_zero_and_plots(tmp_path):
     forced = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, pair=(0, 0))
     assert (forced.frame_a, forced.frame_b) == (0, 0)
     assert forced.error_mm == pytest.approx(m.matrix[0, 0])
+
+
+def test_cli_demo_runs_end_to_end(tmp_path, capsys):
+    import json
+
+    from vesselcad.cli import main
+
+    assert main(["demo", "--out", str(tmp_path), "--frames", "12", "--anatomy", "cs", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    for name in ("run_a.dcm", "run_b.dcm", "truth.json", "preview.png", "phase.png", "demo.json"):
+        assert (tmp_path / name).is_file(), name
+    phase = summary["phase"]
+    assert phase["objects"] == ["balloon"]
+    assert 0 <= phase["frame_a"] < 12 and 0 <= phase["frame_b"] < 12
+    assert phase["error_mm"] <= summary["phase_error_mm_frame_0_0"]

@@ -39,9 +39,9 @@ def _cmd_phantom(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .geometry import reconstruction_error
     from .io import atomic_write_text, load_run
     from .phantom import generate_case, write_case
+    from .phase import match_phase, plot_error_matrix
 
     out = Path(args.out)
     t0 = time.perf_counter()
@@ -49,20 +49,21 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     paths = write_case(case, out, preview=True)
     run_a = load_run(paths["run_a"])
     run_b = load_run(paths["run_b"])
-    truth = case.truth()
-    ka, kb = np.asarray(truth["keypoints_a"]), np.asarray(truth["keypoints_b"])
-    err = reconstruction_error(run_a.view, ka[:, None, :], run_b.view, kb[None, :, :]).error_mm
-    i, j = np.unravel_index(np.nanargmin(err), err.shape)
+    # Ground-truth labels stand in for the segmentation model until it ships.
+    match = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels)
+    plot_error_matrix(match, out / "phase.png")
+    ph_a, ph_b = case.run_a.phases[match.frame_a], case.run_b.phases[match.frame_b]
+    d = np.abs(ph_a - ph_b) % 1.0
+    d = np.minimum(d, 1.0 - d)
     summary = {
         "out": str(out),
         "anatomy": args.anatomy,
         "branches": len(case.anatomy.vessels),
         "frames": [run_a.n_frames, run_b.n_frames],
         "views": [run_a.view.to_dict(), run_b.view.to_dict()],
-        "keypoint": case.anatomy.keypoint_kind,
-        "keypoint_error_mm_frame_0_0": round(float(err[0, 0]), 3),
-        "keypoint_error_mm_best_pair": round(float(err[i, j]), 3),
-        "best_pair": [int(i), int(j)],
+        "phase": match.to_dict(),
+        "phase_error_mm_frame_0_0": round(float(match.matrix[0, 0]), 4),
+        "true_phase_difference": {"cardiac": round(float(d[0]), 4), "respiratory": round(float(d[1]), 4)},
         "seconds": round(time.perf_counter() - t0, 2),
     }
     atomic_write_text(out / "demo.json", json.dumps(summary, indent=2) + "\n")
@@ -71,11 +72,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     elif not args.quiet:
         print(f"demo case in {out} ({summary['seconds']} s): {summary['branches']} branches, "
               f"runs of {run_a.n_frames} and {run_b.n_frames} frames re-read from DICOM")
-        print(f"  stationary object ({summary['keypoint']}) triangulated from the ground-truth "
-              f"key points: {summary['keypoint_error_mm_frame_0_0']} mm at frames (0, 0), "
-              f"{summary['keypoint_error_mm_best_pair']} mm at the best pair {tuple(summary['best_pair'])}")
-        print(f"  preview: {paths['preview']}")
-        print("  3D vessel reconstruction (segmentation -> CAD solid) is not in this version yet.")
+        print(f"  motion phase matching ({', '.join(match.objects)}): frames ({match.frame_a}, "
+              f"{match.frame_b}), key point error {match.error_mm:.3f} mm "
+              f"(frames (0, 0): {summary['phase_error_mm_frame_0_0']:.3f} mm); true phase difference "
+              f"{d[0]:.3f} cardiac, {d[1]:.3f} respiratory cycles")
+        print(f"  pictures: {paths['preview']}, {out / 'phase.png'}")
+        print("  next stages (segmentation model, 3D reconstruction, CAD solid) are not in this version yet.")
     return 0
 
 
@@ -142,7 +144,7 @@ def _parser() -> argparse.ArgumentParser:
     de.add_argument("--out", default="vesselcad-demo", help="output folder (default vesselcad-demo)")
     de.add_argument("--seed", type=int, default=0)
     de.add_argument("--anatomy", choices=["lca", "rca", "cs"], default="lca")
-    de.add_argument("--frames", type=int, default=30)
+    de.add_argument("--frames", type=int, default=40)
     de.add_argument("--quiet", action="store_true")
     de.add_argument("--json", action="store_true", help="print a JSON summary")
     de.set_defaults(func=_cmd_demo)

@@ -382,7 +382,7 @@ def match_phase(
     objects: str | Sequence[str] = "auto",
     min_contrast: float = 0.5,
     use_ecg: bool = True,
-    ecg_tolerance: float = 0.15,
+    ecg_tolerance: float = 0.08,
     pair: tuple[int, int] | None = None,
     window: int = 4,
 ) -> PhaseMatch:

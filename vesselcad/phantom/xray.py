@@ -101,6 +101,9 @@ def tube_image(
     if band_r.size == 0:
         return out, inside, aux_img
     nearest = lut[labels[band_r + margin, band_c + margin]]
+    # Only pixels within the local radius (plus the seed rounding) of their nearest sample.
+    near = inner[band_r, band_c] <= r_px[nearest] + 1.5
+    band_r, band_c, nearest = band_r[near], band_c[near], nearest[near]
     q = np.stack([band_c, band_r], axis=1).astype(np.float64)
     n_seg = len(pts) - 1
     best_d = np.full(len(q), np.inf)
@@ -108,7 +111,7 @@ def tube_image(
     best_t = np.zeros(len(q))
     if n_seg == 0:
         return out, inside, aux_img
-    for off in (-3, -2, -1, 0, 1, 2):
+    for off in (-3, -2, -1, 0, 1, 2):  # segments around the nearest seed (samples share seeds)
         s = np.clip(nearest + off, 0, n_seg - 1)
         ok = seg_ok[s]
         a, b = px[s], px[s + 1]
