@@ -344,26 +344,30 @@ def ecg_phase(run: XARun) -> np.ndarray | None:
 
 
 def diagonal_mean(matrix: np.ndarray, window: int) -> np.ndarray:
-    """Mean of ``matrix`` over ``(i + k, j + k)`` for ``k`` in ``[-window, window]``.
+    """Weighted mean of ``matrix`` over ``(i + k, j + k)`` for ``k`` in ``[-window, window]``.
 
     Pairs in phase stay in phase when both runs advance a frame (at similar
     frame and heart rates), while a pair whose single key point agrees by
     coincidence does not: the mean along the diagonal rejects coincidences.
-    NaN and out-of-range entries are ignored; fewer than ``window + 1`` valid
-    entries give NaN.
+    Weights fall off linearly (``window + 1 - |k|``) because the farther pairs
+    drift apart with any heart-rate difference between the runs. NaN and
+    out-of-range entries are ignored; fewer than ``window + 1`` valid entries
+    give NaN.
     """
     if window <= 0:
         return matrix.copy()
     n_a, n_b = matrix.shape
     padded = np.full((n_a + 2 * window, n_b + 2 * window), np.nan)
     padded[window:window + n_a, window:window + n_b] = matrix
-    stack = np.stack([padded[window + k:window + k + n_a, window + k:window + k + n_b]
-                      for k in range(-window, window + 1)])
-    count = np.isfinite(stack).sum(axis=0)
-    total = np.nansum(stack, axis=0)
+    ks = np.arange(-window, window + 1)
+    stack = np.stack([padded[window + k:window + k + n_a, window + k:window + k + n_b] for k in ks])
+    weights = (window + 1.0 - np.abs(ks))[:, None, None]
+    valid = np.isfinite(stack)
+    total = np.nansum(stack * weights, axis=0)
+    norm = (valid * weights).sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = total / count
-    return np.where((count >= window + 1) & np.isfinite(matrix), out, np.nan)
+        out = total / norm
+    return np.where((valid.sum(axis=0) >= window + 1) & np.isfinite(matrix), out, np.nan)
 
 
 def _contrast_eligible(labels: np.ndarray, share: float) -> np.ndarray:
@@ -408,7 +412,7 @@ def match_phase(
     pair : (int, int), optional
         Force this frame pair (its error is still reported).
     window : int
-        The pair is chosen by the mean error over ``(i + k, j + k)``,
+        The pair is chosen by the weighted mean error over ``(i + k, j + k)``,
         ``|k| <= window`` (see :func:`diagonal_mean`): a single key point
         constrains only its motion across the epipolar plane, so some pair at
         another phase often agrees by coincidence; its neighbours do not.
