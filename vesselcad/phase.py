@@ -492,6 +492,7 @@ def match_phase(
                              "eligible frames; lower min_contrast or pass pair=")
         raise PhaseError("no eligible frame pair: check min_contrast and the ECG restriction")
     n_a, n_b = matrix.shape
+    masked = np.where(allowed, score, np.inf)
     if pair is not None:
         i, j = int(pair[0]), int(pair[1])
         if not (0 <= i < n_a and 0 <= j < n_b):
@@ -499,9 +500,7 @@ def match_phase(
         if not np.isfinite(matrix[i, j]):
             warnings_.append(f"forced pair ({i}, {j}) has no key point in one of the frames")
     else:
-        masked = np.where(allowed, score, np.inf)
         i, j = (int(x) for x in np.unravel_index(np.argmin(masked), masked.shape))
-    masked = np.where(allowed, score, np.inf)
     near = np.zeros_like(allowed)
     near[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2] = True
     rest = np.where(near, np.inf, masked)

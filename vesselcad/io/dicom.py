@@ -157,13 +157,13 @@ def read_dicom_frames(path: str | os.PathLike, dataset: Any = None) -> np.ndarra
                     ("BitsAllocated", "(0028,0100)")):
         if kw not in ds or not ds.get(kw):
             raise DicomError(f"{p}: missing or zero {kw} {tag}")
+    raw_frames = ds.get("NumberOfFrames")
     try:
-        n_frames = int(ds.get("NumberOfFrames", 1) or 1)
+        n_frames = 1 if raw_frames in (None, "") else int(raw_frames)
     except (TypeError, ValueError):
-        raise DicomError(f"{p}: NumberOfFrames (0028,0008) is not a number: "
-                         f"{ds.get('NumberOfFrames')!r}") from None
-    if "NumberOfFrames" in ds and str(ds.NumberOfFrames).strip() in ("0",):
-        raise DicomError(f"{p}: NumberOfFrames (0028,0008) is 0: the run has no frames")
+        raise DicomError(f"{p}: NumberOfFrames (0028,0008) is not a number: {raw_frames!r}") from None
+    if n_frames < 1:
+        raise DicomError(f"{p}: NumberOfFrames (0028,0008) is {n_frames}: the run has no frames")
     tsuid = str(ds.file_meta.get("TransferSyntaxUID", "1.2.840.10008.1.2.1")) if hasattr(
         ds, "file_meta") else "1.2.840.10008.1.2.1"
     try:
@@ -204,10 +204,7 @@ def read_dicom_frames(path: str | os.PathLike, dataset: Any = None) -> np.ndarra
     if arr.ndim == 2:
         arr = arr[None]
     if arr.ndim != 3 or arr.shape[0] != n_frames:
-        if arr.ndim == 3 and n_frames == 1:
-            pass
-        else:
-            raise DicomError(f"{p}: decoded pixel data has shape {arr.shape}, expected "
+        raise DicomError(f"{p}: decoded pixel data has shape {arr.shape}, expected "
                              f"{n_frames} frames of {ds.Rows}x{ds.Columns}")
     if arr.dtype.kind == "i":
         warnings.warn(f"{p}: signed pixels (PixelRepresentation (0028,0103) = 1) shifted to unsigned",
@@ -291,9 +288,8 @@ def view_from_dataset(dataset: Any, geometry: Any = None, source: str = "") -> C
                     f"{src}: ImagerPixelSpacing (0018,1164) is absent; using PixelSpacing "
                     "(0028,0030) as the detector pixel spacing", VesselcadWarning, stacklevel=3)
             if raw is not None:
-                try:
-                    vals = [float(x) for x in (raw if isinstance(raw, list | tuple) or hasattr(
-                        raw, "__len__") and not isinstance(raw, str) else [raw])]
+                try:  # DS or multi-valued DS
+                    vals = [float(x) for x in ([raw] if isinstance(raw, str | float | int) else raw)]
                 except (TypeError, ValueError):
                     vals = []
                 if len(vals) == 1:
@@ -334,7 +330,7 @@ def _frame_times(ds: Any, n: int, src: str, geometry: dict[str, Any]) -> np.ndar
     vec = ds.get("FrameTimeVector")
     if vec is not None:
         try:
-            inc = np.array([float(x) for x in (vec if hasattr(vec, "__len__") else [vec])])
+            inc = np.array([float(x) for x in ([vec] if isinstance(vec, str | float | int) else vec)])
         except (TypeError, ValueError):
             inc = np.array([])
         if inc.size == n and np.all(np.isfinite(inc)):
@@ -382,7 +378,7 @@ def _load_dicom_run(p: Path, geometry: Any) -> XARun:
     r_wave = None
     if ds.get("RWavePointer") is not None:
         rw = ds.RWavePointer
-        rw = [int(x) - 1 for x in (rw if hasattr(rw, "__len__") else [rw])]
+        rw = [int(x) - 1 for x in ([rw] if isinstance(rw, str | float | int) else rw)]
         r_wave = np.array([x for x in rw if 0 <= x < n], dtype=np.int64)
     bits = int(ds.get("BitsStored", frames.dtype.itemsize * 8) or 8)
     bits = min(bits, frames.dtype.itemsize * 8)
