@@ -6,6 +6,7 @@ file formats and the command line.
 
 from __future__ import annotations
 
+from .centreline3d import intersect_centrelines
 from .errors import (
     ArgumentError,
     DecoderError,
@@ -19,6 +20,7 @@ from .errors import (
 )
 from .geometry import CArmView, Reconstruction2View, reconstruction_error, triangulate
 from .io import XARun, load_run, save_run
+from .metrics import centreline_error, reprojection_error
 from .phase import PhaseError, PhaseMatch, match_phase
 
 __version__ = "0.1.0"
@@ -33,6 +35,9 @@ __all__ = [
     "PhaseMatch",
     "PhaseError",
     "triangulate",
+    "intersect_centrelines",
+    "reprojection_error",
+    "centreline_error",
     "reconstruction_error",
     "VesselcadError",
     "ArgumentError",

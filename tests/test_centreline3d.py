@@ -1,0 +1,186 @@
+"""Geometric core: 3D centrelines from two views, against analytic curves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import vesselcad as vc
+from vesselcad.metrics import centreline_error, reprojection_error
+
+VA = vc.CArmView(-30.0, 20.0, 1100.0, 750.0, (0.4, 0.4), 512, 512)  # RAO 30 CRA 20
+VB = vc.CArmView(45.0, -20.0, 1100.0, 750.0, (0.4, 0.4), 512, 512)  # LAO 45 CAU 20
+
+
+def circle_arc(n: int = 4001) -> np.ndarray:
+    """Arc of radius 25 mm over 200 degrees in a tilted plane through the isocentre."""
+    t = np.radians(np.linspace(0.0, 200.0, n))
+    e1 = np.array([1.0, 0.0, 0.3]) / np.linalg.norm([1.0, 0.0, 0.3])
+    e2 = np.cross(e1, np.array([0.2, 1.0, 0.1]) / np.linalg.norm([0.2, 1.0, 0.1]))
+    e2 /= np.linalg.norm(e2)
+    return 25.0 * (np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2) + [5.0, -3.0, 2.0]
+
+
+def helix(n: int = 4001) -> np.ndarray:
+    """1.5 turns of a helix of radius 10 mm and pitch 20 mm along a slanted axis."""
+    t = np.linspace(0.0, 3 * np.pi, n)
+    local = np.stack([10.0 * np.cos(t), 10.0 * np.sin(t), 20.0 * t / (2 * np.pi)], axis=1)
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    return local @ rot.T + [0.0, 0.0, -20.0]
+
+
+def segment(n: int = 4001) -> np.ndarray:
+    return np.linspace([-30.0, 10.0, -25.0], [25.0, -15.0, 30.0], n)
+
+
+def truth_distance(points: np.ndarray, truth_dense: np.ndarray) -> np.ndarray:
+    """Distance to a very dense truth polyline (vertex distance; spacing << tolerance)."""
+    return cKDTree(truth_dense).query(points)[0]
+
+
+def skeleton_like(curve: np.ndarray, view: vc.CArmView) -> np.ndarray:
+    """Exact projection thinned to about one point per pixel, like a skeleton path."""
+    px = view.project(curve)
+    seg = np.linalg.norm(np.diff(px, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    keep = np.searchsorted(s, np.arange(0.0, s[-1], 1.0))
+    keep = np.unique(np.append(keep, len(px) - 1))
+    return px[keep]
+
+
+@pytest.mark.parametrize("make", [circle_arc, helix, segment], ids=["arc", "helix", "segment"])
+def test_exact_projections_recovered_within_0_05_mm(make):
+    truth = make()
+    curve = vc.intersect_centrelines(VA, skeleton_like(truth, VA), VB, skeleton_like(truth, VB))
+    samples = curve.sample(400)
+    d = truth_distance(samples, truth)
+    assert d.max() <= 0.05, (d.max(), curve)
+    # Ordered from the proximal end (the first input point) to the distal one.
+    assert np.linalg.norm(samples[0] - truth[0]) < 0.05
+    assert np.linalg.norm(samples[-1] - truth[-1]) < 0.05
+    # The whole truth is covered.
+    assert cKDTree(samples).query(truth[::20])[0].max() < 0.3
+
+
+def test_result_is_occt_geometry_and_faces_are_valid():
+    from OCP.BRepCheck import BRepCheck_Analyzer
+    from OCP.BRepGProp import BRepGProp
+    from OCP.Geom import Geom_BSplineCurve
+    from OCP.GProp import GProp_GProps
+
+    truth = circle_arc()
+    curve = vc.intersect_centrelines(VA, VA.project(truth[::10]), VB, VB.project(truth[::10]))
+    assert isinstance(curve.curve, Geom_BSplineCurve)
+    assert curve.curve.Degree() == 3
+    fa, fb = curve.faces
+    assert BRepCheck_Analyzer(fa).IsValid() and BRepCheck_Analyzer(fb).IsValid()
+    # OCCT's length of the curve = the arc's analytic length 25 * 200 deg.
+    assert curve.length == pytest.approx(25.0 * np.radians(200.0), rel=1e-3)
+    edge = curve.to_build123d()
+    assert edge.length == pytest.approx(curve.length, rel=1e-6)
+    props = GProp_GProps()
+    BRepGProp.LinearProperties_s(edge.wrapped, props)
+    assert props.Mass() == pytest.approx(curve.length, rel=1e-6)
+
+
+def test_extruded_surface_is_the_ray_surface():
+    from vesselcad.kernel.nurbs import extruded_surface
+    from vesselcad.splines import fit_curve_2d
+
+    spline, _ = fit_curve_2d(VA.project(circle_arc()[::20]))
+    surface = extruded_surface(VA, spline, 600.0, 900.0)
+    for u in np.linspace(spline.t[0], spline.t[-1], 7):
+        for v in (600.0, 750.0, 900.0):
+            p = surface.Value(float(u), float(v))
+            xyz = np.array([p.X(), p.Y(), p.Z()])
+            # Every point of the surface projects onto the 2D curve at the same u,
+            # and its V parameter is its depth along the central ray.
+            assert np.allclose(VA.project(xyz), spline(u), atol=1e-8)
+            assert VA.depth(xyz) == pytest.approx(v, abs=1e-8)
+
+
+def test_epipolar_baseline_agrees_on_exact_input():
+    truth = circle_arc()
+    pa, pb = skeleton_like(truth, VA), skeleton_like(truth, VB)
+    c = vc.intersect_centrelines(VA, pa, VB, pb, method="epipolar")
+    assert c.method == "epipolar" and c.faces is None
+    assert truth_distance(c.sample(300), truth).max() <= 0.05
+
+
+def test_noisy_skeleton_accuracy():
+    rng = np.random.default_rng(7)
+    truth = helix()
+    pa, pb = skeleton_like(truth, VA), skeleton_like(truth, VB)
+    pa = pa + rng.normal(0.0, 0.3, pa.shape)
+    pb = pb + rng.normal(0.0, 0.3, pb.shape)
+    c = vc.intersect_centrelines(VA, pa, VB, pb)
+    assert 0.15 < c.noise_px[0] < 0.5  # the estimated noise is about the true 0.3 px
+    d = truth_distance(c.sample_every(0.5), truth)
+    assert d.mean() <= 0.15 and np.percentile(d, 95) <= 0.4
+
+
+def test_branch_in_an_epipolar_plane_is_bridged_not_raised():
+    # A segment inside the epipolar plane through the isocentre: both surfaces are
+    # the same plane there, so only the end points fix the depth.
+    base = VB.source - VA.source
+    direction = np.cross(np.cross(base, -VA.source), base)  # in the plane, across the baseline
+    direction = 0.3 * base / np.linalg.norm(base) + direction / np.linalg.norm(direction)
+    truth = np.linspace(-20.0, 20.0, 2001)[:, None] * direction / np.linalg.norm(direction)
+    c = vc.intersect_centrelines(VA, VA.project(truth), VB, VB.project(truth))
+    assert c.ill_conditioned_fraction == pytest.approx(1.0)
+    assert c.warnings
+    assert truth_distance(c.sample(200), truth).max() < 0.5
+
+
+@pytest.mark.parametrize(
+    "pts, match",
+    [
+        (np.array([[10.0, 10.0]]), "at least 2"),
+        (np.array([[10.0, 10.0], [np.nan, 3.0], [4.0, 5.0]]), "non-finite"),
+        (np.zeros((5, 3)), r"\(n, 2\)"),
+    ],
+)
+def test_bad_points_are_rejected(pts, match):
+    good = VB.project(segment()[::100])
+    with pytest.raises(vc.ArgumentError, match=match):
+        vc.intersect_centrelines(VA, pts, VB, good)
+
+
+def test_bad_views_and_options_are_rejected():
+    p = segment()[::100]
+    with pytest.raises(vc.ArgumentError, match="identical"):
+        vc.intersect_centrelines(VA, VA.project(p), VA, VA.project(p))
+    with pytest.raises(vc.ArgumentError, match="view_b"):
+        vc.intersect_centrelines(VA, VA.project(p), "LAO 30", VB.project(p))
+    with pytest.raises(vc.ArgumentError, match="method"):
+        vc.intersect_centrelines(VA, VA.project(p), VB, VB.project(p), method="magic")
+    with pytest.raises(vc.ArgumentError, match="min_angle_deg"):
+        vc.intersect_centrelines(VA, VA.project(p), VB, VB.project(p), min_angle_deg=60.0)
+
+
+def test_reprojection_error_metric_on_known_offsets():
+    line = segment()
+    pa = VA.project(line)
+    # Shift the 2D centreline by exactly 2 px perpendicular to its direction.
+    d = pa[-1] - pa[0]
+    normal = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+    err = reprojection_error(line, VA, pa + 2.0 * normal)
+    assert err.mean_px == pytest.approx(2.0, abs=1e-6)
+    assert err.max_px == pytest.approx(2.0, abs=1e-6)
+    assert err.mean_mm == pytest.approx(2.0 * 0.4 * 750.0 / 1100.0, abs=1e-6)
+    both = reprojection_error(line, [VA, VB], [pa, VB.project(line)])
+    assert both.max_px < 1e-6
+
+
+def test_centreline_error_metric_on_known_offsets():
+    truth = segment()
+    unit = np.cross(truth[-1] - truth[0], [0.0, 0.0, 1.0])
+    unit /= np.linalg.norm(unit)
+    near = centreline_error(truth + 0.5 * unit, truth)
+    assert near.mean_mm == pytest.approx(0.5, abs=1e-6) and near.coverage == 1.0
+    far = centreline_error(truth + 2.0 * unit, truth)
+    assert far.coverage == 0.0
+    half = centreline_error(truth[: len(truth) // 2], truth)
+    assert half.coverage == pytest.approx(0.5, abs=0.02)
