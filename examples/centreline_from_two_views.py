@@ -33,7 +33,8 @@ def main(out: str = "docs/img/centreline_core.png") -> None:
     err = vc.centreline_error(curve, truth)
     rep = vc.reprojection_error(curve, [view_a, view_b], [pts_a, pts_b])
     print(curve)
-    print(f"3D error vs truth: mean {err.mean_mm:.4f} mm, max {err.max_mm:.4f} mm, coverage {err.coverage:.1%}")
+    print(f"3D error vs truth: mean {err.mean_mm:.4f} mm, max {err.max_mm:.4f} mm, "
+          f"coverage {err.coverage:.1%}")
     print(f"reprojection: {rep.mean_px:.4f} px = {rep.mean_mm:.4f} mm (max {rep.max_mm:.4f} mm)")
 
     fig = plt.figure(figsize=(8, 7))

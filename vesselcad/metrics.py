@@ -18,17 +18,21 @@ from scipy.spatial import cKDTree
 
 from .errors import ArgumentError
 from .geometry import CArmView, as_points
+from .splines import resample_by_arclength
 
 __all__ = ["ReprojectionError", "CentrelineError", "reprojection_error", "centreline_error",
            "distance_to_polyline"]
 
 
-def _densify(poly: np.ndarray, step: float) -> np.ndarray:
+def _densify(poly: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points at most ``step`` apart along a polyline, and the segment each lies on."""
     seg = np.diff(poly, axis=0)
     n = np.maximum(np.ceil(np.linalg.norm(seg, axis=1) / step).astype(int), 1)
-    t = np.concatenate([np.arange(k) / k for k in n])
-    base = np.repeat(np.arange(len(seg)), n)
-    return np.vstack([poly[base] + t[:, None] * seg[base], poly[-1:]])
+    owner = np.repeat(np.arange(len(seg)), n)
+    first = np.repeat(np.cumsum(n) - n, n)
+    t = (np.arange(len(owner)) - first) / n[owner]
+    dense = np.vstack([poly[owner] + t[:, None] * seg[owner], poly[-1:]])
+    return dense, np.append(owner, len(seg) - 1)
 
 
 def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
@@ -42,12 +46,7 @@ def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray
     if len(poly) == 1:
         return np.linalg.norm(pts - poly[0], axis=-1)
     seg_len = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    step = max(float(np.median(seg_len)), 1e-9)
-    dense = _densify(poly, step)
-    owner = np.minimum(np.searchsorted(np.concatenate([[0.0], np.cumsum(seg_len)]),
-                                       np.concatenate([[0.0], np.cumsum(np.linalg.norm(
-                                           np.diff(dense, axis=0), axis=1))]), side="right") - 1,
-                       len(poly) - 2)
+    dense, owner = _densify(poly, max(float(np.median(seg_len)), 1e-9))
     _, idx = cKDTree(dense).query(pts, k=min(4, len(dense)))
     idx = np.atleast_2d(idx.T).T if idx.ndim == 1 else idx
     cand = np.concatenate([owner[idx] - 1, owner[idx], owner[idx] + 1], axis=1)
@@ -106,10 +105,7 @@ def _samples(curve: Any, step_mm: float) -> np.ndarray:
     pts = as_points(curve, 3, "curve")
     if pts.ndim != 2 or len(pts) < 2:
         raise ArgumentError("curve: expected a Centreline3D or an (n, 3) polyline with n >= 2")
-    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    t = np.linspace(0.0, s[-1], max(int(np.ceil(s[-1] / step_mm)) + 1, 2))
-    return np.stack([np.interp(t, s, pts[:, k]) for k in range(3)], axis=1)
+    return resample_by_arclength(pts, step_mm)
 
 
 def reprojection_error(curve: Any, views: CArmView | list[CArmView],

@@ -25,8 +25,6 @@ from ..geometry import CArmView
 __all__ = [
     "knots_and_mults",
     "bspline_curve",
-    "curve_poles",
-    "curve_knots",
     "extruded_surface",
     "make_face",
     "surface_grid",
@@ -72,18 +70,6 @@ def bspline_curve(spline: interpolate.BSpline) -> Geom_BSplineCurve:
     for i, p in enumerate(c[:n_c], start=1):
         poles.SetValue(i, gp_Pnt(*map(float, p)))
     return Geom_BSplineCurve(poles, _real_array(knots), _int_array(mults), k)
-
-
-def curve_poles(curve: Geom_BSplineCurve) -> np.ndarray:
-    """Control points of an OCCT B-spline curve, shape (n, 3)."""
-    return np.array([[curve.Pole(i).X(), curve.Pole(i).Y(), curve.Pole(i).Z()]
-                     for i in range(1, curve.NbPoles() + 1)])
-
-
-def curve_knots(curve: Geom_BSplineCurve) -> np.ndarray:
-    """Full (flat) knot vector of an OCCT B-spline curve."""
-    return np.repeat([curve.Knot(i) for i in range(1, curve.NbKnots() + 1)],
-                     [curve.Multiplicity(i) for i in range(1, curve.NbKnots() + 1)])
 
 
 def extruded_surface(view: CArmView, spline_px: interpolate.BSpline, depth_min_mm: float,
