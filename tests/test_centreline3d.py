@@ -141,6 +141,7 @@ def test_branch_in_an_epipolar_plane_is_bridged_not_raised():
         (np.array([[10.0, 10.0]]), "at least 2"),
         (np.array([[10.0, 10.0], [np.nan, 3.0], [4.0, 5.0]]), "non-finite"),
         (np.zeros((5, 3)), r"\(n, 2\)"),
+        ("abc", r"\(n, 2\)"),
     ],
 )
 def test_bad_points_are_rejected(pts, match):
@@ -157,6 +158,8 @@ def test_bad_views_and_options_are_rejected():
         vc.intersect_centrelines(VA, VA.project(p), "LAO 30", VB.project(p))
     with pytest.raises(vc.ArgumentError, match="method"):
         vc.intersect_centrelines(VA, VA.project(p), VB, VB.project(p), method="magic")
+    with pytest.raises(vc.ArgumentError, match="other way round"):
+        vc.intersect_centrelines(VA, VA.project(p), VB, VB.project(p)[::-1])
     with pytest.raises(vc.ArgumentError, match="min_angle_deg"):
         vc.intersect_centrelines(VA, VA.project(p), VB, VB.project(p), min_angle_deg=60.0)
 

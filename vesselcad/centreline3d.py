@@ -96,9 +96,18 @@ class _Branch:
         th_b = self.pair.theta_px(view_b, self.pb)
         cond_a = self.pair.conditioning(view_a, self.pa, ta)
         cond_b = self.pair.conditioning(view_b, self.pb, tb)
+        per_px = self.pair.theta_per_px(view_a, self.pa)
+        # Both curves must start at the same end: the end points' epipolar
+        # angles agree pairwise, and a reversed input shows as a crossed match.
+        same = abs(th_a[0] - th_b[0]) + abs(th_a[-1] - th_b[-1])
+        crossed = abs(th_a[0] - th_b[-1]) + abs(th_a[-1] - th_b[0])
+        if crossed + 10.0 * per_px < same:
+            raise ArgumentError(
+                "pts_b_px: runs the other way round from pts_a_px (its first point matches the last "
+                "point of pts_a_px); pass both branch curves from the same (proximal) end"
+            )
         i, j = ordered_correspondence(th_a, th_b)
         self.path = (i, j)
-        per_px = self.pair.theta_per_px(view_a, self.pa)
         tol = (2.0 + 3.0 * max(self.sig_a, self.sig_b)) * per_px
         dir_a = np.sign(np.gradient(th_a))[i]
         dir_b = np.sign(np.gradient(th_b))[j]
@@ -453,8 +462,9 @@ def intersect_centrelines(
     Raises
     ------
     ArgumentError
-        Fewer than 2 distinct points, non-finite values, identical views, an
-        unknown method or out-of-range options.
+        Fewer than 2 distinct points, non-finite or non-numeric values, identical
+        views, curves given from opposite ends, an unknown method or out-of-range
+        options.
 
     Examples
     --------

@@ -95,7 +95,10 @@ def fit_curve_2d(points_px: Any, noise_px: float | None = None, name: str = "poi
         if np.asarray(spl.c).ndim != 2 or np.asarray(spl.c).shape[1] != 2:
             raise ArgumentError(f"{name}: a BSpline must be vector-valued with 2 components")
         return spl, 0.0
-    pts = np.asarray(points_px, dtype=float)
+    try:
+        pts = np.asarray(points_px, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ArgumentError(f"{name}: expected an (n, 2) array of (col, row) pixels ({exc})") from None
     if pts.ndim != 2 or pts.shape[1] != 2:
         raise ArgumentError(f"{name}: expected an (n, 2) array of (col, row) pixels, got shape {pts.shape}")
     if not np.all(np.isfinite(pts)):
