@@ -6,6 +6,7 @@ file formats and the command line.
 
 from __future__ import annotations
 
+from .centreline2d import Branch2D, CentrelineGraph, Crossing, Landmark, centreline_graph
 from .centreline3d import intersect_centrelines
 from .errors import (
     ArgumentError,
@@ -20,6 +21,7 @@ from .errors import (
 )
 from .geometry import CArmView, Reconstruction2View, reconstruction_error, triangulate
 from .io import XARun, load_run, save_run
+from .matching import BranchPair, GraphMatch, LandmarkMatch, Unmatched, match_graphs, plot_graph_match
 from .metrics import centreline_error, reprojection_error
 from .phase import PhaseError, PhaseMatch, match_phase
 
@@ -36,6 +38,17 @@ __all__ = [
     "PhaseError",
     "triangulate",
     "intersect_centrelines",
+    "centreline_graph",
+    "CentrelineGraph",
+    "Landmark",
+    "Branch2D",
+    "Crossing",
+    "match_graphs",
+    "GraphMatch",
+    "BranchPair",
+    "LandmarkMatch",
+    "Unmatched",
+    "plot_graph_match",
     "reprojection_error",
     "centreline_error",
     "reconstruction_error",

@@ -1,0 +1,246 @@
+"""Benchmark: 2D centreline graphs and cross-view matching against phantom ground truth.
+
+For each phantom case (synchronized runs, so the matched-phase pair is exact),
+the frame with the fullest opacification is taken from both runs; the
+ground-truth label masks (vessel, catheter) go through
+``vc.centreline_graph`` and ``vc.match_graphs``, and the result is compared
+with the phantom's 3D truth tree projected into both views:
+
+- truth landmarks: the ostium, every bifurcation (a child's first point) and
+  every vessel end, projected into each view; a detected landmark stands for
+  the truth landmark it is associated with (one-to-one, within 3 px plus the
+  vessel radius);
+- precision: share of matched landmark pairs whose two landmarks stand for the
+  same truth landmark; recall: share of the truth landmarks detected in both
+  views that are matched to each other;
+- correctly paired length: share of the truth centreline length (samples every
+  0.5 mm, visible in both masks) whose projections lie on the two pieces of
+  one branch pair (within 1 px plus the radius in each view);
+- topology: share of branch pairs between two correctly matched landmarks
+  whose start is an ancestor of its end in the truth tree;
+- time: ``centreline_graph`` on both views plus ``match_graphs``.
+
+Run ``python benchmarks/graph_matching.py --cases 30`` (``--json`` for raw
+numbers, ``--plot DIR`` for a picture per case).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import warnings
+
+import numpy as np
+from scipy import ndimage
+from scipy.optimize import linear_sum_assignment
+
+import vesselcad as vc
+from vesselcad.phantom import LABELS, generate_case
+from vesselcad.splines import resample_by_arclength
+
+KINDS = ("lca", "rca", "cs")
+
+
+def truth_landmarks(tree: dict) -> tuple[np.ndarray, list[tuple[int, float]], list[str], np.ndarray]:
+    """3D truth landmarks: (points, (vessel, s_mm) of each, kind, radius mm)."""
+    pts, where, kind, rad = [], [], [], []
+    for b in tree["branches"]:
+        p = np.asarray(b["points"], float)
+        r = np.asarray(b["radius"], float)
+        s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
+        if b["parent"] is None:
+            pts.append(p[0])
+            where.append((b["id"], 0.0))
+            kind.append("end")
+            rad.append(r[0])
+        else:
+            par = tree["branches"][b["parent"]]
+            pts.append(p[0])
+            where.append((b["parent"], float(b["parent_s_mm"])))
+            kind.append("branch")
+            pp = np.asarray(par["points"], float)
+            ps = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pp, axis=0), axis=1))]
+            rad.append(float(np.interp(float(b["parent_s_mm"]), ps, np.asarray(par["radius"], float))))
+        pts.append(p[-1])
+        where.append((b["id"], float(s[-1])))
+        kind.append("end")
+        rad.append(r[-1])
+    return np.array(pts), where, kind, np.array(rad)
+
+
+def is_ancestor(tree: dict, t1: tuple[int, float], t2: tuple[int, float]) -> bool:
+    """Whether truth position t1 lies on the path from the root to t2."""
+    k, s = t2
+    while k is not None:
+        if k == t1[0] and s >= t1[1] - 1.0:
+            return True
+        b = tree["branches"][k]
+        k, s = b["parent"], (b["parent_s_mm"] or 0.0)
+    return False
+
+
+def associate(det: np.ndarray, truth: np.ndarray, tol: np.ndarray) -> np.ndarray:
+    """One-to-one association of detected landmarks to truth landmarks (index or -1)."""
+    out = np.full(len(det), -1)
+    if len(det) == 0 or len(truth) == 0:
+        return out
+    d = np.linalg.norm(det[:, None] - truth[None], axis=-1)
+    cost = np.where(d <= tol[None], d, 1e6)
+    r, c = linear_sum_assignment(cost)
+    ok = cost[r, c] < 1e6
+    out[r[ok]] = c[ok]
+    return out
+
+
+def evaluate(seed: int, kind: str, plot_dir: str | None = None) -> dict:
+    case = generate_case(seed, kind, n_frames=10, synchronized=True)
+    la, lb = case.run_a.labels, case.run_b.labels
+    i = int(np.argmax((la == LABELS["vessel"]).sum(axis=(1, 2))))
+    va, vb = case.run_a.view, case.run_b.view
+    tree = case.run_a.trees[i]
+    masks = [(la[i] == LABELS["vessel"], la[i]), (lb[i] == LABELS["vessel"], lb[i])]
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", vc.VesselcadWarning)
+        ga = vc.centreline_graph(masks[0][0], va, labels=masks[0][1])
+        gb = vc.centreline_graph(masks[1][0], vb, labels=masks[1][1])
+    t1 = time.perf_counter()
+    m = vc.match_graphs(va, ga, vb, gb)
+    t2 = time.perf_counter()
+
+    T3, where, tkind, trad = truth_landmarks(tree)
+    res: dict = {"seed": seed, "anatomy": kind, "t_graph_s": t1 - t0, "t_match_s": t2 - t1,
+                 "t_total_s": t2 - t0, "branches_a": len(ga.branches), "branches_b": len(gb.branches),
+                 "crossings": len(ga.crossings) + len(gb.crossings), "tree": ga.is_tree() and gb.is_tree()}
+    assoc = []
+    for g, v, (mask, _) in ((ga, va, masks[0]), (gb, vb, masks[1])):
+        tp = v.project(T3)
+        r_px = trad * v.sid_mm / v.depth(T3) / float(np.mean(v.pixel_spacing_mm))
+        near = ndimage.binary_dilation(mask, iterations=2)
+        ij = np.clip(np.round(tp).astype(int), 0, [v.cols - 1, v.rows - 1])
+        visible = near[ij[:, 1], ij[:, 0]]
+        a = associate(g.landmark_points, np.where(visible[:, None], tp, 1e9), 3.0 + r_px)
+        assoc.append((a, visible))
+    (aa, vis_a), (ab, vis_b) = assoc
+    det_a = set(aa[aa >= 0].tolist())
+    det_b = set(ab[ab >= 0].tolist())
+    both = det_a & det_b
+    correct = [lm for lm in m.landmark_pairs if aa[lm.a] >= 0 and aa[lm.a] == ab[lm.b]]
+    res["truth_landmarks"] = int(np.sum(vis_a & vis_b))
+    res["detected_a"] = len(det_a)
+    res["detected_b"] = len(det_b)
+    res["matchable"] = len(both)
+    res["matched"] = len(m.landmark_pairs)
+    res["correct"] = len(correct)
+    correct_set = {(lm.a, lm.b) for lm in correct}
+
+    # Correctly paired length: truth samples every 0.5 mm, visible in both masks.
+    tot = ok = 0.0
+    pieces_a = [p.points_a_px for p in m.pairs]
+    pieces_b = [p.points_b_px for p in m.pairs]
+    for b in tree["branches"]:
+        p = np.asarray(b["points"], float)
+        if len(p) < 2:
+            continue
+        dense = resample_by_arclength(p, 0.5)
+        r = np.interp(np.linspace(0, 1, len(dense)), np.linspace(0, 1, len(b["radius"])), b["radius"])
+        on = np.ones(len(dense), bool)
+        near_pair = np.ones((len(m.pairs), len(dense)), bool)
+        for v, (mask, _), pieces in ((va, masks[0], pieces_a), (vb, masks[1], pieces_b)):
+            q = v.project(dense)
+            rp = r * v.sid_mm / v.depth(dense) / float(np.mean(v.pixel_spacing_mm))
+            ij = np.clip(np.round(q).astype(int), 0, [v.cols - 1, v.rows - 1])
+            on &= mask[ij[:, 1], ij[:, 0]]
+            for k, piece in enumerate(pieces):
+                d = np.min(np.linalg.norm(q[:, None] - piece[None], axis=-1), axis=1)
+                near_pair[k] &= d <= 1.0 + rp
+        tot += on.sum() * 0.5
+        ok += (on & near_pair.any(axis=0)).sum() * 0.5 if len(m.pairs) else 0.0
+    res["truth_length_mm"] = tot
+    res["paired_length_mm"] = ok
+
+    # Topology: branch pairs between two correct landmark pairs follow the truth tree's order.
+    topo_n = topo_ok = 0
+    for p in m.pairs:
+        if None in p.start or None in p.end:
+            continue
+        if p.start in correct_set and p.end in correct_set:
+            topo_n += 1
+            topo_ok += is_ancestor(tree, where[aa[p.start[0]]], where[aa[p.end[0]]])
+    res["topology_pairs"] = topo_n
+    res["topology_ok"] = topo_ok
+    if plot_dir:
+        vc.plot_graph_match(ga, gb, m, os.path.join(plot_dir, f"graph_match_{kind}_{seed}.png"),
+                            images=(case.run_a.frames[i], case.run_b.frames[i]),
+                            title=f"phantom {kind} seed {seed}, frame {i}")
+    return res
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    groups = {k: [r for r in rows if r["anatomy"] == k] for k in KINDS}
+    groups["all"] = rows
+    out = []
+    for name, rs in groups.items():
+        if not rs:
+            continue
+        matched = sum(r["matched"] for r in rs)
+        correct = sum(r["correct"] for r in rs)
+        matchable = sum(r["matchable"] for r in rs)
+        truth = sum(r["truth_landmarks"] for r in rs)
+        det = sum(r["detected_a"] + r["detected_b"] for r in rs)
+        t = np.array([r["t_total_s"] for r in rs])
+        out.append({
+            "anatomy": name, "cases": len(rs),
+            "precision": correct / max(matched, 1),
+            "recall": correct / max(matchable, 1),
+            "detected": det / max(2 * truth, 1),
+            "paired_length": sum(r["paired_length_mm"] for r in rs)
+            / max(sum(r["truth_length_mm"] for r in rs), 1e-9),
+            "topology": sum(r["topology_ok"] for r in rs) / max(sum(r["topology_pairs"] for r in rs), 1),
+            "trees": sum(r["tree"] for r in rs) / len(rs),
+            "t_mean_s": float(t.mean()), "t_p95_s": float(np.percentile(t, 95)),
+            "t_graph_s": float(np.mean([r["t_graph_s"] for r in rs])),
+            "t_match_s": float(np.mean([r["t_match_s"] for r in rs])),
+        })
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=30, help="number of phantom cases (anatomies rotate)")
+    ap.add_argument("--seed", type=int, default=1000, help="first seed")
+    ap.add_argument("--json", help="write per-case numbers here")
+    ap.add_argument("--plot", help="directory for one PNG per case")
+    args = ap.parse_args(argv)
+    if args.plot:
+        os.makedirs(args.plot, exist_ok=True)
+    # Warm-up (imports, first-call costs) outside the timing.
+    evaluate(args.seed + 10_000, "lca")
+    rows = []
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover
+        tqdm = None
+    it = range(args.cases)
+    for k in (tqdm(it, desc="cases", file=sys.stderr) if tqdm else it):
+        rows.append(evaluate(args.seed + k, KINDS[k % 3], args.plot))
+    summ = summarize(rows)
+    print("| anatomy | cases | precision | recall | detected | paired length | topology | trees "
+          "| s/case (mean, p95) | graph s | match s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for s in summ:
+        print(f"| {s['anatomy']} | {s['cases']} | {s['precision']:.3f} | {s['recall']:.3f} "
+              f"| {s['detected']:.3f} "
+              f"| {100 * s['paired_length']:.1f}% | {s['topology']:.3f} | {100 * s['trees']:.0f}% "
+              f"| {s['t_mean_s']:.3f}, {s['t_p95_s']:.3f} | {s['t_graph_s']:.3f} | {s['t_match_s']:.3f} |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"rows": rows, "summary": summ}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,142 @@
+"""Cross-view matching of centreline graphs on a synthetic 3D tree seen in two views."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+import vesselcad as vc
+
+VIEW_A = vc.CArmView(primary_deg=30.0, secondary_deg=0.0, sid_mm=1100.0, sod_mm=750.0,
+                     pixel_spacing_mm=(0.4, 0.4), rows=512, cols=512)
+VIEW_B = vc.CArmView(primary_deg=-30.0, secondary_deg=25.0, sid_mm=1100.0, sod_mm=750.0,
+                     pixel_spacing_mm=(0.4, 0.4), rows=512, cols=512)
+
+# A 3D tree (LPS mm): name -> (parent, control points); children start on their parent's end.
+TREE = {
+    "trunk": (None, [(-30, 0, 45), (-18, 4, 30), (0, 5, 12)]),
+    "left": ("trunk", [(0, 5, 12), (-15, 8, -8), (-28, 12, -32)]),
+    "right": ("trunk", [(0, 5, 12), (12, 2, -2), (22, 0, -16)]),
+    "right_a": ("right", [(22, 0, -16), (36, -4, -18), (50, -6, -26)]),
+    "right_b": ("right", [(22, 0, -16), (20, 6, -34), (14, 10, -52)]),
+}
+RADIUS_MM = {"trunk": 2.0, "left": 1.4, "right": 1.6, "right_a": 1.2, "right_b": 1.2}
+
+
+def curve(ctrl, n=200):
+    c = np.asarray(ctrl, float)
+    t = np.linspace(0, 1, n)[:, None]
+    return (1 - t) ** 2 * c[0] + 2 * (1 - t) * t * c[1] + t ** 2 * c[2]  # quadratic Bezier
+
+
+def render(view, skip=()):
+    mask = np.zeros((view.rows, view.cols), np.uint8)
+    for name, (_, ctrl) in TREE.items():
+        if name in skip:
+            continue
+        p = view.project(curve(ctrl))
+        r_px = RADIUS_MM[name] * view.magnification / view.pixel_spacing_mm[0]
+        cv2.polylines(mask, [np.round(p * 16).astype(np.int32)], False, 1, int(round(2 * r_px)),
+                      cv2.LINE_8, shift=4)
+    return mask.astype(bool)
+
+
+def truth_landmarks():
+    pts = [np.asarray(TREE["trunk"][1][0], float)]
+    pts += [np.asarray(ctrl[-1], float) for _, ctrl in TREE.values()]
+    return np.array(pts)  # root, then each branch's distal end (junctions and leaves)
+
+
+@pytest.fixture(scope="module")
+def graphs():
+    ga = vc.centreline_graph(render(VIEW_A), VIEW_A)
+    gb = vc.centreline_graph(render(VIEW_B), VIEW_B)
+    return ga, gb
+
+
+def test_graphs_have_the_tree_topology(graphs):
+    for g in graphs:
+        assert len(g.branches) == 5
+        assert len(g.branch_points) == 2
+        assert len(g.end_points) == 4
+
+
+def test_every_landmark_matched_correctly(graphs):
+    ga, gb = graphs
+    m = vc.match_graphs(VIEW_A, ga, VIEW_B, gb)
+    truth = truth_landmarks()
+    assert len(m.landmark_pairs) == len(truth) == 6
+    for lm in m.landmark_pairs:
+        # Both landmarks are the projections of the same truth landmark ...
+        ka = np.argmin(np.linalg.norm(VIEW_A.project(truth) - ga.landmarks[lm.a].point_px, axis=1))
+        kb = np.argmin(np.linalg.norm(VIEW_B.project(truth) - gb.landmarks[lm.b].point_px, axis=1))
+        assert ka == kb
+        # ... and triangulate onto it (junction centres are located to about a radius).
+        assert np.linalg.norm(lm.point_mm - truth[ka]) < 3.0
+        assert lm.error_px < 3.0
+    assert m.roots == (ga.root, gb.root)
+    assert not [u for u in m.unmatched if u.kind == "branch"]
+
+
+def test_branch_pairs_run_together_and_cover_both_trees(graphs):
+    ga, gb = graphs
+    m = vc.match_graphs(VIEW_A, ga, VIEW_B, gb)
+    assert sorted(a for a, _ in m.branch_pairs) == list(range(5))
+    assert sorted(b for _, b in m.branch_pairs) == list(range(5))
+    dense = np.concatenate([curve(c, 400) for _, c in TREE.values()])
+    for p in m.pairs:
+        assert p.error_px < 1.5
+        assert len(p.points_a_px) == len(p.points_b_px) >= 2
+        # Start and end of both pieces triangulate onto the 3D tree: they run the same way.
+        for k in (0, -1):
+            x = vc.triangulate(VIEW_A, p.points_a_px[k], VIEW_B, p.points_b_px[k])
+            assert np.min(np.linalg.norm(dense - x, axis=1)) < 3.0
+        assert 0.8 < p.radius_mm / RADIUS_MM[_name_of(p, m, ga)] < 1.4
+    # The root pair comes first and starts at the roots.
+    assert m.pairs[0].start == (ga.root, gb.root)
+
+
+def _name_of(pair, match, ga):
+    mid = vc.triangulate(VIEW_A, pair.points_a_px[len(pair.points_a_px) // 2], VIEW_B,
+                         pair.points_b_px[len(pair.points_b_px) // 2])
+    d = {n: np.min(np.linalg.norm(curve(c, 400) - mid, axis=1)) for n, (_, c) in TREE.items()}
+    return min(d, key=d.get)
+
+
+def test_geometric_core_accepts_the_pairs(graphs):
+    ga, gb = graphs
+    m = vc.match_graphs(VIEW_A, ga, VIEW_B, gb)
+    p = max(m.pairs, key=lambda q: q.length_a_px)
+    c3 = vc.intersect_centrelines(VIEW_A, p.points_a_px, VIEW_B, p.points_b_px)
+    name = _name_of(p, m, ga)
+    d = np.min(np.linalg.norm(c3.sample(100)[:, None] - curve(TREE[name][1], 800)[None], axis=-1), axis=1)
+    assert np.median(d) < 1.0
+
+
+def test_side_branch_hidden_in_one_view_is_reported():
+    ga = vc.centreline_graph(render(VIEW_A), VIEW_A)
+    gb = vc.centreline_graph(render(VIEW_B, skip=("right_b",)), VIEW_B)
+    assert len(gb.branch_points) == 1
+    m = vc.match_graphs(VIEW_A, ga, VIEW_B, gb)
+    only_a = [u for u in m.unmatched if u.view == "a" and u.kind == "landmark"]
+    assert any("seen in view A only" in u.reason for u in only_a)
+    lost = [u for u in m.unmatched if u.view == "a" and u.kind == "branch"]
+    assert len(lost) == 1 and "hidden" in lost[0].reason  # the hidden side branch only
+    end = VIEW_A.project(np.asarray(TREE["right_b"][1][-1], float))
+    b = ga.branches[lost[0].index]
+    assert min(np.linalg.norm(b.points_px[[0, -1]] - end, axis=1)) < 6.0
+    # The B branch through the missing branch point is paired in two pieces.
+    bs = [b for _, b in m.branch_pairs]
+    assert max(bs.count(b) for b in set(bs)) == 2
+
+
+def test_bad_input():
+    g = vc.centreline_graph(render(VIEW_A), VIEW_A)
+    with pytest.raises(vc.ArgumentError, match="graph_b"):
+        vc.match_graphs(VIEW_A, g, VIEW_B, "graph")
+    with pytest.raises(vc.ArgumentError, match="view_a"):
+        vc.match_graphs(None, g, VIEW_B, g)
+    empty = vc.centreline_graph(np.zeros((512, 512), bool), VIEW_B)
+    m = vc.match_graphs(VIEW_A, g, VIEW_B, empty)
+    assert m.branch_pairs == [] and len([u for u in m.unmatched if u.kind == "branch"]) == len(g.branches)

@@ -1,0 +1,601 @@
+"""Cross-view matching of two centreline graphs (paper §2.4 steps 1-2).
+
+Landmarks of the two views are compared by the paper's reconstruction error
+(§2.3): triangulate the pair, reproject, take the larger 2D error. Branches
+are compared the same way sample by sample: walking both trees outward from a
+matched root pair, every candidate pair of child branches is aligned by a
+monotone (ordering-preserving) dynamic-programming path through the matrix of
+reconstruction errors of their samples, and the children of a matched
+landmark pair are assigned to each other by the Hungarian method on the mean
+error along those paths. The alignment also tells where a branch ends first:
+a branch point seen in one view only (its side branch hidden or too short in
+the other view) splits the other view's branch at the corresponding point and
+the walk goes on, so the topology of both trees is respected without asking
+them to be identical. Whatever is not paired is returned with its reason.
+
+See docs/centreline2d.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import networkx as nx
+import numpy as np
+from scipy import interpolate
+
+from .centreline2d import CentrelineGraph
+from .errors import ArgumentError
+from .geometry import CArmView, reconstruction_error
+from .splines import arc_length, fit_curve_2d
+
+__all__ = ["LandmarkMatch", "BranchPair", "Unmatched", "GraphMatch", "match_graphs"]
+
+#: Landmark pairs are accepted up to this reconstruction error (px) plus the
+#: mean of their two radii (junction centres are only located to about a radius).
+LANDMARK_TOL_PX = 3.0
+#: Mean reconstruction error (px) along a branch pair above which it is rejected.
+BRANCH_TOL_PX = 3.0
+#: Per-sample errors are capped at this (px) so that one far sample cannot dominate.
+CAP_PX = 12.0
+#: Weight (px of error per mm) of the 3D length of an alignment path.
+LENGTH_WEIGHT = 1.0
+#: 3D steps are capped at this (mm).
+CAP_MM = 10.0
+#: Branches are compared on samples this far apart (px).
+STEP_PX = 2.0
+#: Longest chain of branches (through branch points seen in one view only) matched to one branch.
+MAX_CHAIN = 3
+#: Gain factor per extra branch in a chain (prefers direct branch-to-branch pairs).
+CHAIN_FACTOR = 0.9
+
+
+@dataclass
+class LandmarkMatch:
+    """A landmark of view A paired with a landmark of view B.
+
+    Attributes
+    ----------
+    a, b : int
+        Landmark indices in ``graph_a`` and ``graph_b``.
+    error_px, error_mm : float
+        Reconstruction error of the pair (paper §2.3).
+    point_mm : numpy.ndarray, shape (3,)
+        Triangulated position, LPS mm.
+    """
+
+    a: int
+    b: int
+    error_px: float
+    error_mm: float
+    point_mm: np.ndarray
+
+
+@dataclass
+class BranchPair:
+    """The same vessel segment seen in both views, ready for :func:`vesselcad.intersect_centrelines`.
+
+    The two point lists run in the same direction (proximal to distal, from
+    the matched root outward) between corresponding end points.
+
+    Attributes
+    ----------
+    a, b : int
+        Branch indices in ``graph_a.branches`` and ``graph_b.branches``.
+    a_range, b_range : tuple of float
+        Arc-length interval (px) of each branch that is paired, measured along
+        the branch's own point order. A branch is paired in pieces when the
+        other view shows a branch point on it that this view lacks.
+    reversed_a, reversed_b : bool
+        True when the pair runs against the branch's own point order.
+    start, end : tuple of (int or None, int or None)
+        Landmark indices (view A, view B) at each end; None where the end is
+        a point inside a branch (the other view's branch point).
+    points_a_px, points_b_px : numpy.ndarray, shape (n, 2)
+        The paired pieces, in pair order.
+    radius_a_px, radius_b_px : numpy.ndarray, shape (n,)
+        Radius profiles along those pieces.
+    radius_mm : float
+        Median radius in mm at the isocentre over both views.
+    error_px, error_mm : float
+        Mean reconstruction error along the alignment of the two pieces.
+    """
+
+    a: int
+    b: int
+    a_range: tuple[float, float]
+    b_range: tuple[float, float]
+    reversed_a: bool
+    reversed_b: bool
+    start: tuple[int | None, int | None]
+    end: tuple[int | None, int | None]
+    points_a_px: np.ndarray
+    points_b_px: np.ndarray
+    radius_a_px: np.ndarray
+    radius_b_px: np.ndarray
+    radius_mm: float
+    error_px: float
+    error_mm: float
+
+    @property
+    def length_a_px(self) -> float:
+        return float(self.a_range[1] - self.a_range[0])
+
+    @property
+    def length_b_px(self) -> float:
+        return float(self.b_range[1] - self.b_range[0])
+
+    def splines(self, noise_px: float | None = None) -> tuple[interpolate.BSpline, interpolate.BSpline]:
+        """Cubic B-splines (px) of the two pieces, both in pair order."""
+        sa, _ = fit_curve_2d(self.points_a_px, noise_px, name=f"branch {self.a} (view A)")
+        sb, _ = fit_curve_2d(self.points_b_px, noise_px, name=f"branch {self.b} (view B)")
+        return sa, sb
+
+
+@dataclass
+class Unmatched:
+    """A landmark or (a piece of) a branch left without a partner, and why.
+
+    Attributes
+    ----------
+    view : {'a', 'b'}
+    kind : {'landmark', 'branch'}
+    index : int
+    reason : str
+    range : tuple of float or None
+        For branches, the unpaired arc-length interval (px, branch order).
+    """
+
+    view: str
+    kind: str
+    index: int
+    reason: str
+    range: tuple[float, float] | None = None
+
+
+@dataclass
+class GraphMatch:
+    """Result of :func:`match_graphs`.
+
+    Attributes
+    ----------
+    landmark_pairs : list of LandmarkMatch
+    pairs : list of BranchPair
+    unmatched : list of Unmatched
+    roots : tuple of int or None
+        The matched root landmarks (view A, view B) of the main tree.
+    warnings : list of str
+    """
+
+    landmark_pairs: list[LandmarkMatch]
+    pairs: list[BranchPair]
+    unmatched: list[Unmatched]
+    roots: tuple[int | None, int | None]
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def branch_pairs(self) -> list[tuple[int, int]]:
+        """(index in graph_a.branches, index in graph_b.branches) of every pair."""
+        return [(p.a, p.b) for p in self.pairs]
+
+    @property
+    def landmark_indices(self) -> np.ndarray:
+        """(K, 2) landmark index pairs (view A, view B)."""
+        return np.array([(m.a, m.b) for m in self.landmark_pairs], dtype=np.int64).reshape(-1, 2)
+
+    def __repr__(self) -> str:
+        return (f"GraphMatch({len(self.landmark_pairs)} landmark pairs, {len(self.pairs)} branch pairs, "
+                f"{len(self.unmatched)} unmatched, roots={self.roots})")
+
+
+# ------------------------------------------------------------------ paths
+@dataclass
+class _Path:
+    """A chain of branches between two landmarks, sampled every STEP_PX."""
+
+    nodes: list[int]  # landmarks along the chain (first ... last)
+    edges: list[int]  # branch indices
+    rev: list[bool]  # each branch walked against its own point order
+    pts: np.ndarray  # (n, 2) samples
+    s: np.ndarray  # (n,) arc length of the samples along the chain
+    bounds: np.ndarray  # arc length at each node (len(nodes),)
+    arcs: list[np.ndarray]  # own arc-length of each branch (branch point order)
+
+    @property
+    def length(self) -> float:
+        return float(self.bounds[-1])
+
+    def reversed(self) -> _Path:
+        L = self.length
+        return _Path(self.nodes[::-1], self.edges[::-1], [not r for r in self.rev[::-1]],
+                     self.pts[::-1].copy(), L - self.s[::-1], L - self.bounds[::-1], self.arcs[::-1])
+
+
+def _chain(graph: CentrelineGraph, arcs: list[np.ndarray], nodes: list[int], edges: list[int],
+           rev: list[bool]) -> _Path:
+    parts, bounds = [], [0.0]
+    for k, r in zip(edges, rev, strict=False):
+        p = graph.branches[k].points_px
+        parts.append(p[::-1] if r else p)
+        bounds.append(bounds[-1] + float(arcs[k][-1]))
+    pts = np.concatenate([parts[0]] + [q[1:] for q in parts[1:]])
+    arc = arc_length(pts)
+    total = float(arc[-1])
+    n = max(int(np.ceil(total / STEP_PX)) + 1, 3)
+    s = np.linspace(0.0, total, n)
+    samp = np.stack([np.interp(s, arc, pts[:, 0]), np.interp(s, arc, pts[:, 1])], axis=1)
+    b = np.asarray(bounds) * (total / max(bounds[-1], 1e-12))
+    return _Path(nodes, edges, rev, samp, s, b, [arcs[k] for k in edges])
+
+
+def _enumerate_paths(graph: CentrelineGraph, arcs: list[np.ndarray], max_edges: int) -> list[_Path]:
+    """Single branches, and chains of up to ``max_edges`` branches through branch points."""
+    inc: dict[int, list[tuple[int, int, bool]]] = {lm.index: [] for lm in graph.landmarks}
+    for b in graph.branches:
+        inc[b.start].append((b.index, b.end, False))
+        inc[b.end].append((b.index, b.start, True))
+    out = []
+    seen: set[tuple[int, ...]] = set()
+    for u in inc:
+        stack = [([u], [], [])]
+        while stack:
+            nodes, edges, rev = stack.pop()
+            if edges:
+                key = tuple(edges) if edges[0] <= edges[-1] else tuple(edges[::-1])
+                if key not in seen:
+                    seen.add(key)
+                    out.append(_chain(graph, arcs, list(nodes), list(edges), list(rev)))
+            if len(edges) >= max_edges:
+                continue
+            for k, v, r in inc[nodes[-1]]:
+                if k in edges or v in nodes:
+                    continue
+                stack.append((nodes + [v], edges + [k], rev + [r]))
+    return out
+
+
+def _dtw(E: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Accumulated cost of monotone alignments from (0, 0) (see :func:`match_graphs`).
+
+    A step into cell (i, j) costs the reconstruction error there (twice on a
+    diagonal step, so every path into (i, j) has weight i + j + 2) plus
+    ``LENGTH_WEIGHT`` times the 3D distance between the triangulated points
+    of the two cells: among correspondences that reproject equally well (a
+    vessel running along an epipolar line) the shortest 3D curve wins.
+    """
+    n, m = E.shape
+    lw = LENGTH_WEIGHT
+    dv = np.zeros((n, m))
+    dh = np.zeros((n, m))
+    dd = np.zeros((n, m))
+    dv[1:] = np.minimum(np.linalg.norm(X[1:] - X[:-1], axis=-1), CAP_MM)
+    dh[:, 1:] = np.minimum(np.linalg.norm(X[:, 1:] - X[:, :-1], axis=-1), CAP_MM)
+    dd[1:, 1:] = np.minimum(np.linalg.norm(X[1:, 1:] - X[:-1, :-1], axis=-1), CAP_MM)
+    h = E + lw * dh
+    D = np.empty((n, m))
+    D[0] = E[0, 0] + np.cumsum(np.r_[E[0, 0], h[0, 1:]])
+    for i in range(1, n):
+        prev = D[i - 1]
+        a = prev + E[i] + lw * dv[i]
+        a[1:] = np.minimum(a[1:], prev[:-1] + 2.0 * E[i, 1:] + lw * dd[i, 1:])
+        c = np.cumsum(h[i])
+        D[i] = c + np.minimum.accumulate(a - c)
+    return D
+
+
+def _backtrack(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Path of an accumulated-cost matrix from its last cell back to (0, 0) (approximate steps)."""
+    i, j = D.shape[0] - 1, D.shape[1] - 1
+    pi, pj = [i], [j]
+    while i > 0 or j > 0:
+        if i == 0:
+            j -= 1
+        elif j == 0:
+            i -= 1
+        else:
+            k = int(np.argmin((D[i - 1, j - 1], D[i - 1, j], D[i, j - 1])))
+            i, j = (i - 1, j - 1) if k == 0 else (i - 1, j) if k == 1 else (i, j - 1)
+        pi.append(i)
+        pj.append(j)
+    return np.array(pi[::-1]), np.array(pj[::-1])
+
+
+def _compare(va: CArmView, vb: CArmView, pa: _Path, pb: _Path) -> tuple[float, np.ndarray]:
+    rec = reconstruction_error(va, pa.pts[:, None, :], vb, pb.pts[None, :, :])
+    E = np.minimum(np.nan_to_num(rec.error_px, nan=CAP_PX), CAP_PX)
+    X = np.nan_to_num(rec.points_mm, nan=1e6)
+    D = _dtw(E, X)
+    pi, pj = _backtrack(D)
+    # Mean reconstruction error along the path (the length term only chooses the path).
+    return float(np.mean(E[pi, pj])), D
+
+
+def _check_graph(graph: Any, name: str) -> CentrelineGraph:
+    if not isinstance(graph, CentrelineGraph):
+        raise ArgumentError(f"{name}: expected a vesselcad.CentrelineGraph, got {type(graph).__name__}")
+    return graph
+
+
+def _depths(graph: CentrelineGraph) -> dict[int, int]:
+    depth: dict[int, int] = {}
+    g = graph.graph
+    roots = [graph.root] if graph.root is not None else []
+    for comp in nx.connected_components(g):
+        r = next((x for x in roots if x in comp), min(comp))
+        depth.update(nx.single_source_shortest_path_length(g, r))
+    return depth
+
+
+def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
+                 graph_b: CentrelineGraph) -> GraphMatch:
+    """Pair the landmarks and branches of two views' centreline graphs.
+
+    Every branch of one view is a candidate partner of every branch, or chain
+    of up to three branches, of the other view whose two end landmarks agree
+    with its own (reconstruction error within ``LANDMARK_TOL_PX`` plus the
+    mean radius). Each candidate is scored by aligning its samples with a
+    monotone path through their matrix of reconstruction errors (with a
+    shortest-3D-curve tie-break). Candidates are then accepted greedily by
+    paired length times agreement, keeping every landmark paired with at most
+    one landmark and every branch used once, so the result respects the
+    topology of both trees; a chain matched to one branch marks a branch point
+    seen in one view only.
+
+    Parameters
+    ----------
+    view_a, view_b : CArmView
+        The two views (their geometry defines the reconstruction error).
+    graph_a, graph_b : CentrelineGraph
+        From :func:`vesselcad.centreline_graph` on the matched-phase frames.
+
+    Returns
+    -------
+    GraphMatch
+        ``branch_pairs`` lists (index in ``graph_a.branches``, index in
+        ``graph_b.branches``); ``pairs`` hold the ordered pieces ready for
+        :func:`vesselcad.intersect_centrelines`, proximal first (the order of
+        view A's tree); ``unmatched`` lists every landmark and branch left out,
+        with the reason.
+
+    Raises
+    ------
+    ArgumentError
+        Arguments of the wrong type.
+    """
+    for v, name in ((view_a, "view_a"), (view_b, "view_b")):
+        if not isinstance(v, CArmView):
+            raise ArgumentError(f"{name}: expected a vesselcad.CArmView, got {type(v).__name__}")
+    ga = _check_graph(graph_a, "graph_a")
+    gb = _check_graph(graph_b, "graph_b")
+    if not ga.branches or not gb.branches:
+        un = [Unmatched("a", "branch", b.index, "view B has no centreline") for b in ga.branches]
+        un += [Unmatched("b", "branch", b.index, "view A has no centreline") for b in gb.branches]
+        return GraphMatch([], [], un, (ga.root, gb.root), ["one of the graphs has no branches"])
+    pa_lm, pb_lm = ga.landmark_points, gb.landmark_points
+    rec = reconstruction_error(view_a, pa_lm[:, None, :], view_b, pb_lm[None, :, :])
+    lm_err = np.nan_to_num(rec.error_px, nan=np.inf)
+    ra_px = np.array([lm.radius_px for lm in ga.landmarks])
+    rb_px = np.array([lm.radius_px for lm in gb.landmarks])
+    kind_a = np.array([lm.kind for lm in ga.landmarks])
+    kind_b = np.array([lm.kind for lm in gb.landmarks])
+    ok_lm = (lm_err <= LANDMARK_TOL_PX + 0.5 * (ra_px[:, None] + rb_px[None, :])) & (
+        kind_a[:, None] == kind_b[None, :])
+
+    arcs_a = [arc_length(b.points_px) for b in ga.branches]
+    arcs_b = [arc_length(b.points_px) for b in gb.branches]
+    paths_a = _enumerate_paths(ga, arcs_a, MAX_CHAIN)
+    paths_b = _enumerate_paths(gb, arcs_b, MAX_CHAIN)
+    ends = lambda ps: (np.array([p.nodes[0] for p in ps]), np.array([p.nodes[-1] for p in ps]))  # noqa: E731
+    ua, va_ = ends(paths_a)
+    ub, vb_ = ends(paths_b)
+    single_a = np.array([len(p.edges) == 1 for p in paths_a])
+    single_b = np.array([len(p.edges) == 1 for p in paths_b])
+    shape_ok = single_a[:, None] | single_b[None, :]
+    fwd = ok_lm[ua][:, ub] & ok_lm[va_][:, vb_] & shape_ok
+    bwd = ok_lm[ua][:, vb_] & ok_lm[va_][:, ub] & shape_ok
+    cands = []
+    for (i, j), flip in [(ij, False) for ij in zip(*np.nonzero(fwd), strict=False)] + [
+            (ij, True) for ij in zip(*np.nonzero(bwd), strict=False)]:
+        pa, pb = paths_a[i], paths_b[j]
+        if flip:
+            pb = pb.reversed()
+        if pa.nodes[0] == pa.nodes[-1] or pb.nodes[0] == pb.nodes[-1]:
+            continue
+        cost, D = _compare(view_a, view_b, pa, pb)
+        if cost > BRANCH_TOL_PX:
+            continue
+        extra = len(pa.edges) + len(pb.edges) - 2
+        gain = min(pa.length, pb.length) * (1.0 - cost / BRANCH_TOL_PX) * (CHAIN_FACTOR ** extra)
+        cands.append((gain, cost, pa, pb, D))
+    cands.sort(key=lambda c: -c[0])
+
+    map_ab: dict[int, int] = {}
+    map_ba: dict[int, int] = {}
+    only_a: set[int] = set()  # branch points seen in view A only
+    only_b: set[int] = set()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    accepted = []
+    for _, cost, pa, pb, D in cands:
+        if used_a & set(pa.edges) or used_b & set(pb.edges):
+            continue
+        ok = True
+        for x, y in ((pa.nodes[0], pb.nodes[0]), (pa.nodes[-1], pb.nodes[-1])):
+            if map_ab.get(x, y) != y or map_ba.get(y, x) != x or x in only_a or y in only_b:
+                ok = False
+        inner_a, inner_b = pa.nodes[1:-1], pb.nodes[1:-1]
+        if any(n in map_ab for n in inner_a) or any(n in map_ba for n in inner_b):
+            ok = False
+        if not ok:
+            continue
+        for x, y in ((pa.nodes[0], pb.nodes[0]), (pa.nodes[-1], pb.nodes[-1])):
+            map_ab[x], map_ba[y] = y, x
+        only_a.update(inner_a)
+        only_b.update(inner_b)
+        used_a.update(pa.edges)
+        used_b.update(pb.edges)
+        accepted.append((cost, pa, pb, D))
+
+    # Orientation: proximal first, by view A's tree (depth from the root).
+    depth_a = _depths(ga)
+    pairs: list[BranchPair] = []
+    mm_a = float(np.mean(view_a.mm_per_px))
+    mm_b = float(np.mean(view_b.mm_per_px))
+    for cost, pa, pb, D in accepted:
+        if depth_a.get(pa.nodes[0], 0) > depth_a.get(pa.nodes[-1], 0):
+            pa, pb = pa.reversed(), pb.reversed()
+            D = None
+        pairs.extend(_pieces(view_a, view_b, ga, gb, pa, pb, cost, mm_a, mm_b, D))
+    order = {id(p): k for k, p in enumerate(pairs)}
+    pairs.sort(key=lambda p: (depth_a.get(p.start[0], 0) if p.start[0] is not None else 1e9, order[id(p)]))
+
+    lmm = [LandmarkMatch(a=int(a), b=int(b), error_px=float(rec.error_px[a, b]),
+                         error_mm=float(rec.error_mm[a, b]), point_mm=np.asarray(rec.points_mm[a, b]))
+           for a, b in map_ab.items()]
+    lmm.sort(key=lambda m: (depth_a.get(m.a, 0), m.a))
+    unmatched: list[Unmatched] = []
+    for g, tag, other, mapped, only, used in ((ga, "a", "B", map_ab, only_a, used_a),
+                                               (gb, "b", "A", map_ba, only_b, used_b)):
+        for lm in g.landmarks:
+            if lm.index in mapped:
+                continue
+            if lm.index in only:
+                why = (f"branch point seen in view {tag.upper()} only (its side branch is hidden, "
+                       f"too short or crosses another vessel in view {other})")
+            else:
+                why = f"no landmark of view {other} agrees with it on a consistent branch"
+            unmatched.append(Unmatched(tag, "landmark", lm.index, why))
+        for b in g.branches:
+            if b.index not in used:
+                unmatched.append(Unmatched(tag, "branch", b.index, (
+                    f"no branch of view {other} between matching landmarks agrees with it "
+                    f"(hidden, foreshortened, overlapping or not segmented in view {other})"),
+                    (0.0, float(b.length_px))))
+    roots = (ga.root, map_ab.get(ga.root) if ga.root is not None else None)
+    warnings_ = []
+    if ga.root is not None and gb.root is not None and map_ab.get(ga.root) not in (None, gb.root):
+        warnings_.append("the roots of the two graphs were not matched to each other")
+    return GraphMatch(lmm, pairs, unmatched, roots, warnings_)
+
+
+def _pieces(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph, pa: _Path, pb: _Path,
+            cost: float, mm_a: float, mm_b: float, D: np.ndarray | None) -> list[BranchPair]:
+    """Cut a matched chain pair at every node of either chain into per-branch pieces."""
+    if D is None:
+        _, D = _compare(va, vb, pa, pb)
+    pi, pj = _backtrack(D)
+    sa, sb = pa.s[pi], pb.s[pj]
+    # Cut positions in both chains' arc length.
+    cuts = [(0.0, 0.0, pa.nodes[0], pb.nodes[0])]
+    inner = [(float(x), float(np.interp(x, sa, sb)), n, None)
+             for x, n in zip(pa.bounds[1:-1], pa.nodes[1:-1], strict=True)]
+    inner += [(float(np.interp(y, sb, sa)), float(y), None, n)
+              for y, n in zip(pb.bounds[1:-1], pb.nodes[1:-1], strict=True)]
+    cuts += sorted(inner)
+    cuts.append((pa.length, pb.length, pa.nodes[-1], pb.nodes[-1]))
+    out = []
+    for (a0, b0, na0, nb0), (a1, b1, na1, nb1) in zip(cuts[:-1], cuts[1:], strict=False):
+        if a1 - a0 < 1e-6 or b1 - b0 < 1e-6:
+            continue
+        ka = int(np.clip(np.searchsorted(pa.bounds, 0.5 * (a0 + a1)) - 1, 0, len(pa.edges) - 1))
+        kb = int(np.clip(np.searchsorted(pb.bounds, 0.5 * (b0 + b1)) - 1, 0, len(pb.edges) - 1))
+        n = max(int(np.ceil(max(a1 - a0, b1 - b0))) + 1, 2)
+        pts_a, r_a, rng_a = _piece(ga, pa, ka, a0, a1, n)
+        pts_b, r_b, rng_b = _piece(gb, pb, kb, b0, b1, n)
+        out.append(BranchPair(
+            a=pa.edges[ka], b=pb.edges[kb], a_range=rng_a, b_range=rng_b, reversed_a=pa.rev[ka],
+            reversed_b=pb.rev[kb], start=(na0, nb0), end=(na1, nb1), points_a_px=pts_a, points_b_px=pts_b,
+            radius_a_px=r_a, radius_b_px=r_b,
+            radius_mm=float(np.median(np.concatenate([r_a * mm_a, r_b * mm_b]))),
+            error_px=cost, error_mm=cost * 0.5 * (mm_a + mm_b)))
+    return out
+
+
+def _piece(g: CentrelineGraph, p: _Path, k: int, s0: float, s1: float, n: int
+           ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    """Points, radii and own-order arc range of chain interval [s0, s1] inside its k-th branch."""
+    b = g.branches[p.edges[k]]
+    arc = p.arcs[k]
+    L = float(arc[-1])
+    scale = L / max(float(p.bounds[k + 1] - p.bounds[k]), 1e-12)
+    t0, t1 = (s0 - p.bounds[k]) * scale, (s1 - p.bounds[k]) * scale
+    t = np.linspace(t0, t1, n)
+    own = L - t if p.rev[k] else t
+    pts = np.stack([np.interp(own, arc, b.points_px[:, 0]), np.interp(own, arc, b.points_px[:, 1])], axis=1)
+    r = np.interp(own, arc, b.radius_px)
+    lo, hi = sorted((float(own[0]), float(own[-1])))
+    return pts, r, (max(lo, 0.0), min(hi, L))
+
+
+def plot_graph_match(graph_a: CentrelineGraph, graph_b: CentrelineGraph, match: GraphMatch | None,
+                     path: Any, *, images: tuple[np.ndarray, np.ndarray] | None = None,
+                     title: str = "") -> Any:
+    """Picture of both views: skeleton, branches, landmarks by type, matched landmarks numbered alike.
+
+    Paired branches share a colour across the views; unpaired branches are
+    grey and dashed. End points are circles, branch points squares, crossings
+    crosses; a matched landmark pair carries the same number in both views.
+    Written atomically as PNG; returns the path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io.atomic import atomic_path
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6.6))
+    cmap = plt.get_cmap("tab20")
+    colour_a: dict[int, Any] = {}
+    colour_b: dict[int, Any] = {}
+    number_a: dict[int, int] = {}
+    number_b: dict[int, int] = {}
+    if match is not None:
+        for k, p in enumerate(match.pairs):
+            colour_a.setdefault(p.a, cmap(k % 20))
+            colour_b.setdefault(p.b, cmap(k % 20))
+        for k, lm in enumerate(match.landmark_pairs):
+            number_a[lm.a] = k
+            number_b[lm.b] = k
+    for ax, g, img, colours, numbers, name in ((axes[0], graph_a, None if images is None else images[0],
+                                                colour_a, number_a, "A"),
+                                               (axes[1], graph_b, None if images is None else images[1],
+                                                colour_b, number_b, "B")):
+        if img is not None:
+            ax.imshow(img, cmap="gray")
+        else:
+            ax.imshow(np.zeros((g.view.rows, g.view.cols)), cmap="gray", vmin=0, vmax=1)
+        sk_r, sk_c = np.nonzero(g.skeleton)
+        ax.plot(sk_c, sk_r, ",", color="yellow", alpha=0.35)
+        if match is not None:
+            for p in match.pairs:
+                pts = p.points_a_px if name == "A" else p.points_b_px
+                ax.plot(pts[:, 0], pts[:, 1], "-", lw=2.2, color=colours[p.a if name == "A" else p.b])
+        for b in g.branches:
+            if b.index not in colours:
+                ax.plot(b.points_px[:, 0], b.points_px[:, 1], "--", lw=1.2, color="0.6")
+        for lm in g.landmarks:
+            x, y = lm.point_px
+            matched = lm.index in numbers
+            ax.plot(x, y, "o" if lm.kind == "end" else "s", ms=7 if matched else 5,
+                    mfc="cyan" if lm.kind == "end" else "magenta", mec="white" if matched else "none")
+            if matched:
+                ax.annotate(str(numbers[lm.index]), (x, y), xytext=(4, -4), textcoords="offset points",
+                            color="white", fontsize=8, fontweight="bold")
+        for c in g.crossings:
+            ax.plot(*c.point_px, "x", color="orange", ms=8, mew=2)
+        if g.root is not None:
+            ax.plot(*g.landmarks[g.root].point_px, "*", color="red", ms=13)
+        ax.set_title(f"view {name}: {len(g.branches)} branches, {len(g.branch_points)} branch points, "
+                     f"{len(g.end_points)} ends, {len(g.crossings)} crossings", fontsize=9)
+        ax.set_axis_off()
+    if match is not None:
+        fig.suptitle((title + "\n" if title else "") + f"{len(match.landmark_pairs)} matched landmarks "
+                     f"(same number in both views), {len(match.pairs)} branch pairs (same colour); "
+                     "circle end, square branch point, x crossing, star root", fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80, format="png")
+    plt.close(fig)
+    return path
