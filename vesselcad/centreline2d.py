@@ -729,7 +729,7 @@ def centreline_graph(
     if noise_px is not None and not (np.isfinite(noise_px) and noise_px >= 0):
         raise ArgumentError(f"noise_px: expected a finite value >= 0, got {noise_px!r}")
     notes: list[str] = []
-    m = morphology.remove_small_holes(m, max_size=MAX_HOLE_PX) if m.any() else m
+    m = _fill_small_holes(m, MAX_HOLE_PX)
     dist = _edt(np.pad(m, 1))[1:-1, 1:-1]
     rmap = np.maximum(dist - 0.5, 0.0).astype(np.float32)
     skel = morphology.skeletonize(m)
@@ -762,6 +762,18 @@ def centreline_graph(
     for note in notes:
         warnings.warn(note, VesselcadWarning, stacklevel=2)
     return graph
+
+
+def _fill_small_holes(m: np.ndarray, max_px: int) -> np.ndarray:
+    """Fill background regions enclosed by the mask that have at most ``max_px`` pixels."""
+    holes = ndimage.binary_fill_holes(m) & ~m
+    if not holes.any():
+        return m
+    lab, n = ndimage.label(holes)
+    size = np.bincount(lab.ravel(), minlength=n + 1)
+    small = size <= max_px
+    small[0] = False
+    return m | small[lab]
 
 
 def _fill_occlusions(m: np.ndarray, occ: np.ndarray) -> np.ndarray:

@@ -127,8 +127,16 @@ def ordered_correspondence(theta_a: np.ndarray, theta_b: np.ndarray) -> tuple[np
         a = cost[i] + best
         c = np.cumsum(cost[i])
         D[i] = c + np.minimum.accumulate(a - c)
-    # Backtrack (vectorization does not apply: each step depends on the last).
-    i, j = na - 1, nb - 1
+    return backtrack(D)
+
+
+def backtrack(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Monotone path of an accumulated-cost matrix from (0, 0) to its last cell.
+
+    Walks back from the last cell, each time to the cheapest of the diagonal,
+    upper and left neighbours (a sequential walk: each step depends on the last).
+    """
+    i, j = D.shape[0] - 1, D.shape[1] - 1
     path_i, path_j = [i], [j]
     while i > 0 or j > 0:
         if i == 0:
@@ -136,14 +144,8 @@ def ordered_correspondence(theta_a: np.ndarray, theta_b: np.ndarray) -> tuple[np
         elif j == 0:
             i -= 1
         else:
-            cands = (D[i - 1, j - 1], D[i - 1, j], D[i, j - 1])
-            k = int(np.argmin(cands))
-            if k == 0:
-                i, j = i - 1, j - 1
-            elif k == 1:
-                i -= 1
-            else:
-                j -= 1
+            k = int(np.argmin((D[i - 1, j - 1], D[i - 1, j], D[i, j - 1])))
+            i, j = (i - 1, j - 1) if k == 0 else (i - 1, j) if k == 1 else (i, j - 1)
         path_i.append(i)
         path_j.append(j)
     return np.array(path_i[::-1]), np.array(path_j[::-1])

@@ -26,6 +26,7 @@ import numpy as np
 from scipy import interpolate
 
 from .centreline2d import CentrelineGraph
+from .epipolar import backtrack
 from .errors import ArgumentError
 from .geometry import CArmView, reconstruction_error
 from .splines import arc_length, fit_curve_2d
@@ -284,29 +285,12 @@ def _dtw(E: np.ndarray, X: np.ndarray) -> np.ndarray:
     return D
 
 
-def _backtrack(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Path of an accumulated-cost matrix from its last cell back to (0, 0) (approximate steps)."""
-    i, j = D.shape[0] - 1, D.shape[1] - 1
-    pi, pj = [i], [j]
-    while i > 0 or j > 0:
-        if i == 0:
-            j -= 1
-        elif j == 0:
-            i -= 1
-        else:
-            k = int(np.argmin((D[i - 1, j - 1], D[i - 1, j], D[i, j - 1])))
-            i, j = (i - 1, j - 1) if k == 0 else (i - 1, j) if k == 1 else (i, j - 1)
-        pi.append(i)
-        pj.append(j)
-    return np.array(pi[::-1]), np.array(pj[::-1])
-
-
 def _compare(va: CArmView, vb: CArmView, pa: _Path, pb: _Path) -> tuple[float, np.ndarray]:
     rec = reconstruction_error(va, pa.pts[:, None, :], vb, pb.pts[None, :, :])
     E = np.minimum(np.nan_to_num(rec.error_px, nan=CAP_PX), CAP_PX)
     X = np.nan_to_num(rec.points_mm, nan=1e6)
     D = _dtw(E, X)
-    pi, pj = _backtrack(D)
+    pi, pj = backtrack(D)
     # Mean reconstruction error along the path (the length term only chooses the path).
     return float(np.mean(E[pi, pj])), D
 
@@ -484,7 +468,7 @@ def _pieces(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph
     """Cut a matched chain pair at every node of either chain into per-branch pieces."""
     if D is None:
         _, D = _compare(va, vb, pa, pb)
-    pi, pj = _backtrack(D)
+    pi, pj = backtrack(D)
     sa, sb = pa.s[pi], pb.s[pj]
     # Cut positions in both chains' arc length.
     cuts = [(0.0, 0.0, pa.nodes[0], pb.nodes[0])]
