@@ -50,9 +50,6 @@ CROSSING_MAX_BEND_DEG = 35.0
 #: Smallest angle (degrees) between two crossing vessels.
 CROSSING_MIN_ANGLE_DEG = 15.0
 
-_KINDS = ("end", "branch")
-
-
 @dataclass
 class Landmark:
     """A node of the centreline graph.
@@ -301,6 +298,14 @@ class _Work:
             else:
                 inc[u].append(k)
         return inc
+
+    def to_nx(self) -> nx.MultiGraph:
+        """The current graph as networkx (edge keys = edge ids, attribute ``length`` in px)."""
+        g = nx.MultiGraph()
+        g.add_nodes_from(self.nodes)
+        for k, (u, v, pts) in self.edges.items():
+            g.add_edge(u, v, key=k, length=_length(pts))
+        return g
 
     def degree(self, n: int) -> int:
         return sum((u == n) + (v == n) for u, v, _ in self.edges.values())
@@ -610,10 +615,7 @@ def _resolve_crossings(w: _Work, rmap: np.ndarray) -> None:
 
 
 def _drop_small_components(w: _Work) -> float:
-    g = nx.MultiGraph()
-    g.add_nodes_from(w.nodes)
-    for k, (u, v, pts) in w.edges.items():
-        g.add_edge(u, v, key=k, length=_length(pts))
+    g = w.to_nx()
     dropped = 0.0
     for comp in list(nx.connected_components(g)):
         length = sum(d["length"] for _, _, d in g.subgraph(comp).edges(data=True))
@@ -628,10 +630,7 @@ def _drop_small_components(w: _Work) -> float:
 
 def _break_cycles(w: _Work, root_of: dict[int, int]) -> int:
     """Cut each edge that closes a cycle at its end farther from the root (it becomes an end point)."""
-    g = nx.MultiGraph()
-    g.add_nodes_from(w.nodes)
-    for k, (u, v, pts) in w.edges.items():
-        g.add_edge(u, v, key=k, length=_length(pts))
+    g = w.to_nx()
     cut = 0
     for comp in nx.connected_components(g):
         sub = g.subgraph(comp)
@@ -823,10 +822,7 @@ def _choose_roots(w: _Work, rmap: np.ndarray, tip: np.ndarray | None) -> dict[in
     root of its component; elsewhere the widest end point (the ostium is the
     widest end of a coronary tree, and of the coronary sinus).
     """
-    g = nx.MultiGraph()
-    g.add_nodes_from(w.nodes)
-    for u, v, pts in w.edges.values():
-        g.add_edge(u, v, length=_length(pts))
+    g = w.to_nx()
     roots: dict[int, int] = {}
     for comp in nx.connected_components(g):
         ends = [n for n in comp if g.degree(n) == 1] or list(comp)
@@ -844,10 +840,7 @@ def _choose_roots(w: _Work, rmap: np.ndarray, tip: np.ndarray | None) -> dict[in
 
 def _finish(w: _Work, rmap: np.ndarray, view: CArmView, root_of: dict[int, int], skel: np.ndarray,
             noise_px: float | None) -> CentrelineGraph:
-    g0 = nx.MultiGraph()
-    g0.add_nodes_from(w.nodes)
-    for k, (u, v, _) in w.edges.items():
-        g0.add_edge(u, v, key=k)
+    g0 = w.to_nx()
     comps = sorted(nx.connected_components(g0), key=lambda c: -sum(
         _length(w.edges[k][2]) for _, _, k in g0.subgraph(c).edges(keys=True)))
     # Number landmarks breadth-first from each root (largest component first).

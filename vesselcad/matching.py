@@ -1,17 +1,17 @@
 """Cross-view matching of two centreline graphs (paper §2.4 steps 1-2).
 
 Landmarks of the two views are compared by the paper's reconstruction error
-(§2.3): triangulate the pair, reproject, take the larger 2D error. Branches
-are compared the same way sample by sample: walking both trees outward from a
-matched root pair, every candidate pair of child branches is aligned by a
+(§2.3): triangulate the pair, reproject, take the larger 2D error. A branch
+of one view and a branch (or a chain of branches through branch points) of
+the other whose end landmarks agree are aligned sample by sample by a
 monotone (ordering-preserving) dynamic-programming path through the matrix of
-reconstruction errors of their samples, and the children of a matched
-landmark pair are assigned to each other by the Hungarian method on the mean
-error along those paths. The alignment also tells where a branch ends first:
-a branch point seen in one view only (its side branch hidden or too short in
-the other view) splits the other view's branch at the corresponding point and
-the walk goes on, so the topology of both trees is respected without asking
-them to be identical. Whatever is not paired is returned with its reason.
+reconstruction errors of their samples, with the 3D length of the path as a
+tie-break where a vessel runs along an epipolar line. Candidates are accepted
+greedily by paired length times agreement, each landmark paired at most once
+and each branch used once, so the topology of both trees is respected without
+asking them to be identical: a chain paired with one branch marks a branch
+point seen in one view only (its side branch hidden or too short in the
+other). Whatever is not paired is returned with its reason.
 
 See docs/centreline2d.md.
 """
