@@ -24,8 +24,18 @@ from .io import XARun, load_run, save_run
 from .matching import BranchPair, GraphMatch, LandmarkMatch, Unmatched, match_graphs, plot_graph_match
 from .metrics import centreline_error, reprojection_error
 from .phase import PhaseError, PhaseMatch, match_phase
+from .tree import TreeBranch, VesselTree
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    # The solid class lives behind the OCCT door; import it only when asked for.
+    if name == "VesselSolid":
+        from .kernel.solid import VesselSolid
+
+        return VesselSolid
+    raise AttributeError(f"module 'vesselcad' has no attribute {name!r}")
 
 __all__ = [
     "CArmView",
@@ -49,6 +59,9 @@ __all__ = [
     "LandmarkMatch",
     "Unmatched",
     "plot_graph_match",
+    "VesselTree",
+    "TreeBranch",
+    "VesselSolid",
     "reprojection_error",
     "centreline_error",
     "reconstruction_error",

@@ -1,0 +1,781 @@
+"""The 3D vessel tree: branches with centreline B-splines and radius laws, topology, files.
+
+A :class:`VesselTree` is what the reconstruction produces and what the solid
+is built from (paper §2.4 step 4). It reads and writes ``centrelines.json``
+(docs/formats.md), exports centrelines with radius as VTP (vmtk's point-data
+names), and prepares the branches for the pipes:
+
+1. **rebuild** (:meth:`VesselTree.rebuilt`): each branch becomes a clamped
+   cubic B-spline with the fewest uniform knots that keep every input point
+   within ``tol_mm`` (default 0.05 mm), end points held; its radius becomes a
+   smooth law along the same parameter (P-spline, 4 mm knots).
+2. **merge** (:meth:`VesselTree.merged`): where a branch ends at the start of a
+   child that continues it (end tangents within ``max_angle_deg``), the two
+   become one vessel: a single C2 curve whose bend at the join is a blend of
+   curvature radius three vessel radii. The other children of the join become
+   side branches of the merged vessel.
+3. **pipes** (:meth:`VesselTree.solid`): the radius is clamped where the
+   centreline bends tighter than ``radius / 0.8`` (so no pipe folds onto itself),
+   each child starts on its parent's centreline (inside the parent), and the
+   NURBS pipes are fused into one solid in ``vesselcad.kernel``.
+
+Every branch keeps the reasons for what was changed in ``warnings``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import interpolate, ndimage
+
+from .errors import ArgumentError, InputFileError
+from .splines import arc_length, fit_pspline
+
+__all__ = ["TreeBranch", "VesselTree", "fit_spine", "fit_radius_law", "curvature"]
+
+#: Default rebuild tolerance (mm).
+TOL_MM = 0.05
+#: Largest angle (deg) between a branch's end tangent and a child's start tangent
+#: for the two to be merged into one vessel.
+MAX_MERGE_ANGLE_DEG = 30.0
+#: Pipes never fold: radius <= CURVATURE_FACTOR / curvature.
+CURVATURE_FACTOR = 0.8
+#: A child's start radius is kept below this share of its parent's radius, so the
+#: child's start circle lies strictly inside the parent (no tangent faces).
+CHILD_RADIUS_SHARE = 0.9
+#: A child starting farther than this many parent radii from the parent's
+#: centreline is not pulled onto it.
+MAX_START_GAP_RADII = 2.0
+#: Smallest radius a pipe gets (mm).
+MIN_RADIUS_MM = 0.05
+
+
+# ------------------------------------------------------------------- fitting
+def fit_spine(points: Any, tol_mm: float = TOL_MM, max_knot_step_mm: float = 20.0
+              ) -> tuple[interpolate.BSpline, float]:
+    """Cubic B-spline through 3D points with the fewest uniform knots that meet ``tol_mm``.
+
+    Parameters
+    ----------
+    points : (n, 3) array_like
+        Ordered centreline samples (mm).
+    tol_mm : float
+        Largest allowed distance between an input point and the curve at its parameter.
+    max_knot_step_mm : float
+        Knot spacing never exceeds this (keeps long straight runs well conditioned).
+
+    Returns
+    -------
+    spline : scipy.interpolate.BSpline
+        Clamped cubic, vector valued; its parameter is the chord length of the
+        input samples (mm), equal to the arc length to within the sampling's
+        sagitta. The end points are held.
+    max_error_mm : float
+        Largest deviation of an input point.
+    """
+    p = _as_points(points, "points")
+    if not tol_mm > 0:
+        raise ArgumentError(f"tol_mm: expected a positive number, got {tol_mm!r}")
+    p = _dedupe(p)
+    if len(p) < 2:
+        raise ArgumentError("points: a branch needs at least two distinct points")
+    s = arc_length(p)
+    if len(p) < 4:  # too few to fit a cubic: densify the polyline (exact for a segment)
+        t = np.linspace(0.0, s[-1], 4)
+        p = np.stack([np.interp(t, s, p[:, k]) for k in range(3)], axis=1)
+        s = t
+    length = float(s[-1])
+    # Hold the ends: weight them like many samples.
+    ends = np.r_[[0] * 20, [len(p) - 1] * 20]
+    x = np.r_[s, s[ends]]
+    y = np.vstack([p, p[ends]])
+
+    def fit(step: float) -> tuple[interpolate.BSpline, float]:
+        spl = fit_pspline(x, y, step, 0.0, domain=(0.0, length))
+        return spl, float(np.max(np.linalg.norm(spl(s) - p, axis=1)))
+
+    lo_n, hi_n = 1, max(int(np.ceil(length / 0.5)), 1)  # number of knot spans
+    hi_n = max(hi_n, int(np.ceil(length / max_knot_step_mm)))
+    best = fit(length / hi_n)
+    if best[1] > tol_mm:
+        return best  # the data are noisier than the tolerance: densest fit
+    lo_n = max(lo_n, int(np.ceil(length / max_knot_step_mm)))
+    while lo_n < hi_n:
+        mid = (lo_n + hi_n) // 2
+        cand = fit(length / mid)
+        if cand[1] <= tol_mm:
+            hi_n, best = mid, cand
+        else:
+            lo_n = mid + 1
+    return best
+
+
+def fit_radius_law(param: Any, radius: Any, length: float, knot_step_mm: float = 4.0,
+                   smoothing: float = 0.1) -> interpolate.BSpline:
+    """Smooth cubic radius law r(s) over [0, length] (P-spline), never below ``MIN_RADIUS_MM``."""
+    s = np.asarray(param, dtype=float)
+    r = np.asarray(radius, dtype=float)
+    if r.shape != s.shape or r.size == 0 or not np.all(np.isfinite(r)) or np.any(r <= 0):
+        raise ArgumentError("radius: expected positive finite values, one per point")
+    spl = fit_pspline(s, r[:, None], min(knot_step_mm, max(length, 1e-6)), smoothing, domain=(0.0, length))
+    c = np.maximum(np.asarray(spl.c), MIN_RADIUS_MM)
+    return interpolate.BSpline(spl.t, c, spl.k)
+
+
+def curvature(spline: interpolate.BSpline, s: Any) -> np.ndarray:
+    """Curvature (1/mm) of a 3D spline at parameters ``s``."""
+    d1 = spline.derivative(1)(s)
+    d2 = spline.derivative(2)(s)
+    num = np.linalg.norm(np.cross(d1, d2), axis=-1)
+    return num / np.maximum(np.linalg.norm(d1, axis=-1) ** 3, 1e-30)
+
+
+def _as_points(points: Any, name: str) -> np.ndarray:
+    try:
+        p = np.asarray(points, dtype=float)
+    except (TypeError, ValueError):
+        raise ArgumentError(f"{name}: expected an (n, 3) array of numbers") from None
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 2:
+        raise ArgumentError(f"{name}: expected an (n, 3) array with n >= 2, got shape {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ArgumentError(f"{name}: contains NaN or infinite values")
+    return p
+
+
+def _dedupe(p: np.ndarray) -> np.ndarray:
+    keep = np.r_[True, np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-9]
+    return p[keep]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / max(float(np.linalg.norm(v)), 1e-30)
+
+
+# ------------------------------------------------------------------- branches
+@dataclass(eq=False)
+class TreeBranch:
+    """One vessel branch, ordered from its proximal (parent) end.
+
+    Attributes
+    ----------
+    id : int
+    parent : int or None
+    points : (n, 3) array
+        Centreline samples (mm, LPS).
+    radius : (n,) array
+        Radius at each sample (mm).
+    name : str
+    parent_s_mm : float or None
+        Where on the parent's centreline (arc length, mm) this branch starts.
+    landmarks : (int or None, int or None)
+        Source landmarks (e.g. matched 2D landmark indices) of the start and end.
+    segments : tuple of int
+        Ids of the input branches merged into this one (itself when not merged).
+    spline : scipy.interpolate.BSpline or None
+        The rebuilt centreline (parameter = arc length, mm) once fitted.
+    radius_law : scipy.interpolate.BSpline or None
+        Radius along the same parameter.
+    fit_error_mm : float
+        Largest distance of an input point from the rebuilt centreline.
+    warnings : list of str
+    """
+
+    id: int
+    parent: int | None
+    points: np.ndarray
+    radius: np.ndarray
+    name: str = ""
+    parent_s_mm: float | None = None
+    landmarks: tuple[int | None, int | None] = (None, None)
+    segments: tuple[int, ...] = ()
+    spline: interpolate.BSpline | None = None
+    radius_law: interpolate.BSpline | None = None
+    fit_error_mm: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def is_fitted(self) -> bool:
+        return self.spline is not None
+
+    @property
+    def length_mm(self) -> float:
+        """Centreline length (mm)."""
+        if self.spline is None:
+            return float(arc_length(self.points)[-1])
+        s = np.linspace(*self.domain, 2001)
+        return float(arc_length(self.spline(s))[-1])
+
+    @property
+    def domain(self) -> tuple[float, float]:
+        """Parameter range of the rebuilt centreline."""
+        if self.spline is None:
+            return 0.0, float(arc_length(self.points)[-1])
+        k = self.spline.k
+        return float(self.spline.t[k]), float(self.spline.t[-k - 1])
+
+    def sample(self, step_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+        """Points and radii every ``step_mm`` along the branch (ends included)."""
+        if not step_mm > 0:
+            raise ArgumentError(f"step_mm: expected a positive number, got {step_mm!r}")
+        if self.spline is None:
+            s = arc_length(self.points)
+            t = np.linspace(0.0, s[-1], max(int(np.ceil(s[-1] / step_mm)) + 1, 2))
+            pts = np.stack([np.interp(t, s, self.points[:, k]) for k in range(3)], axis=1)
+            return pts, np.interp(t, s, self.radius)
+        a, b = self.domain
+        t = np.linspace(a, b, max(int(np.ceil((b - a) / step_mm)) + 1, 2))
+        return self.spline(t), self.radius_at(t)
+
+    def radius_at(self, s: Any) -> np.ndarray:
+        """Radius (mm) at centreline parameters ``s``."""
+        s = np.asarray(s, dtype=float)
+        if self.radius_law is None:
+            return np.interp(s, arc_length(self.points), self.radius)
+        return np.asarray(self.radius_law(s)).reshape(s.shape)
+
+    @property
+    def curve(self) -> Any:
+        """The rebuilt centreline as an OCCT ``Geom_BSplineCurve``."""
+        from .kernel.nurbs import bspline_curve
+
+        if self.spline is None:
+            raise ArgumentError(f"branch {self.id}: not rebuilt yet (call VesselTree.rebuilt())")
+        return bspline_curve(self.spline)
+
+    def tangent(self, end: str) -> np.ndarray:
+        """Unit tangent (along the branch) at ``end`` in {'start', 'end'}."""
+        if self.spline is not None:
+            a, b = self.domain
+            return _unit(self.spline.derivative()(a if end == "start" else b))
+        pts, _ = self.sample(0.5)
+        k = min(4, len(pts) - 1)
+        return _unit(pts[k] - pts[0]) if end == "start" else _unit(pts[-1] - pts[-1 - k])
+
+    def __repr__(self) -> str:
+        return (f"TreeBranch(id={self.id}, name={self.name!r}, parent={self.parent}, "
+                f"length={self.length_mm:.1f} mm, points={len(self.points)})")
+
+
+# ------------------------------------------------------------------- the tree
+class VesselTree:
+    """A 3D vessel tree: branches with parents, centrelines and radii in LPS mm.
+
+    Parameters
+    ----------
+    branches : list of TreeBranch
+        Ids unique; every parent id present; no cycles.
+
+    Examples
+    --------
+    >>> tree = VesselTree.from_json("centrelines.json")   # doctest: +SKIP
+    >>> solid = tree.solid()                               # doctest: +SKIP
+    >>> solid.export_step("tree.step")                     # doctest: +SKIP
+    """
+
+    def __init__(self, branches: list[TreeBranch]):
+        self.branches: list[TreeBranch] = list(branches)
+        self._index = {b.id: b for b in self.branches}
+        if len(self._index) != len(self.branches):
+            raise ArgumentError("branches: branch ids must be unique")
+        for b in self.branches:
+            if b.parent is not None and b.parent not in self._index:
+                raise ArgumentError(f"branch {b.id}: parent {b.parent} is not a branch of the tree")
+        self.order()  # raises on cycles
+
+    # -------------------------------------------------------------- topology
+    def __len__(self) -> int:
+        return len(self.branches)
+
+    def __iter__(self) -> Iterator[TreeBranch]:
+        return iter(self.branches)
+
+    def __getitem__(self, branch_id: int) -> TreeBranch:
+        try:
+            return self._index[branch_id]
+        except KeyError:
+            raise ArgumentError(f"branch_id: no branch {branch_id!r} in the tree") from None
+
+    @property
+    def roots(self) -> list[int]:
+        """Ids of branches without a parent."""
+        return [b.id for b in self.branches if b.parent is None]
+
+    def children(self, branch_id: int) -> list[int]:
+        """Ids of the branches whose parent is ``branch_id``."""
+        return [b.id for b in self.branches if b.parent == branch_id]
+
+    def order(self) -> list[int]:
+        """Branch ids parents-first (breadth first from each root)."""
+        kids: dict[int | None, list[int]] = {}
+        for b in self.branches:
+            kids.setdefault(b.parent, []).append(b.id)
+        out: list[int] = []
+        queue = deque(kids.get(None, []))
+        while queue:
+            i = queue.popleft()
+            out.append(i)
+            queue.extend(kids.get(i, []))
+        if len(out) != len(self.branches):
+            raise ArgumentError("branches: the parent links form a cycle")
+        return out
+
+    def to_networkx(self) -> Any:
+        """A ``networkx.DiGraph`` parent -> child with the branch objects as node data."""
+        import networkx as nx
+
+        g = nx.DiGraph()
+        for b in self.branches:
+            g.add_node(b.id, branch=b, name=b.name)
+        for b in self.branches:
+            if b.parent is not None:
+                g.add_edge(b.parent, b.id, parent_s_mm=b.parent_s_mm)
+        return g
+
+    @property
+    def total_length_mm(self) -> float:
+        return float(sum(b.length_mm for b in self.branches))
+
+    def __repr__(self) -> str:
+        return f"VesselTree(branches={len(self)}, roots={self.roots}, length={self.total_length_mm:.0f} mm)"
+
+    # -------------------------------------------------------------- files
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "centrelines") -> VesselTree:
+        """Tree from a ``centrelines.json`` object (see docs/formats.md)."""
+        if not isinstance(data, dict) or not isinstance(data.get("branches"), list):
+            raise InputFileError(f"{source}: expected an object with a 'branches' list")
+        units = data.get("units", "mm")
+        if units != "mm":
+            raise InputFileError(f"{source}: units must be 'mm', got {units!r}")
+        frame = data.get("frame", "LPS")
+        if frame != "LPS":
+            raise InputFileError(f"{source}: frame must be 'LPS', got {frame!r}")
+        branches = []
+        for k, b in enumerate(data["branches"]):
+            where = f"{source}: branches[{k}]"
+            if not isinstance(b, dict) or "points" not in b or "radius" not in b or "id" not in b:
+                raise InputFileError(f"{where}: needs 'id', 'points' and 'radius'")
+            try:
+                pts = _as_points(b["points"], "points")
+            except ArgumentError as exc:
+                raise InputFileError(f"{where} (id {b.get('id')}): {exc}") from None
+            rad = np.asarray(b["radius"], dtype=float)
+            if rad.shape != (len(pts),) or not np.all(np.isfinite(rad)) or np.any(rad <= 0):
+                raise InputFileError(f"{where} (id {b['id']}): 'radius' must hold {len(pts)} "
+                                     "positive numbers")
+            lm = b.get("landmarks") or (None, None)
+            branches.append(TreeBranch(
+                id=int(b["id"]), parent=None if b.get("parent") is None else int(b["parent"]),
+                points=pts, radius=rad, name=str(b.get("name") or f"branch_{b['id']}"),
+                parent_s_mm=None if b.get("parent_s_mm") is None else float(b["parent_s_mm"]),
+                landmarks=(lm[0], lm[1]), segments=(int(b["id"]),)))
+        try:
+            return cls(branches)
+        except ArgumentError as exc:
+            raise InputFileError(f"{source}: {exc}") from None
+
+    @classmethod
+    def from_json(cls, source: str | os.PathLike | dict) -> VesselTree:
+        """Read ``centrelines.json`` (a path, or the already parsed object)."""
+        if isinstance(source, dict):
+            return cls.from_dict(source)
+        path = Path(source)
+        if not path.is_file():
+            raise InputFileError(f"{path}: no such file")
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputFileError(f"{path}: not a readable JSON file ({exc})") from None
+        return cls.from_dict(data, str(path))
+
+    @classmethod
+    def from_truth(cls, source: Any, frame: int = 0, run: str = "a") -> VesselTree:
+        """Ground-truth tree of a phantom case.
+
+        Parameters
+        ----------
+        source : PhantomCase, dict or path
+            A case from ``vesselcad.phantom.generate_case``, a ``truth.json``
+            object or its path, or a single ``centrelines.json`` tree object.
+        frame : int
+            Frame whose tree to take.
+        run : {'a', 'b'}
+        """
+        if run not in ("a", "b"):
+            raise ArgumentError(f"run: expected 'a' or 'b', got {run!r}")
+        name = "truth"
+        if isinstance(source, (str, os.PathLike)):
+            name = str(source)
+            try:
+                source = json.loads(Path(source).read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise InputFileError(f"{name}: not a readable truth.json ({exc})") from None
+        if hasattr(source, "run_a") and hasattr(source, "run_b"):
+            trees = getattr(source, f"run_{run}").trees
+        elif isinstance(source, dict) and f"trees_{run}" in source:
+            trees = source[f"trees_{run}"]
+        elif isinstance(source, dict) and "branches" in source:
+            return cls.from_dict(source, name)
+        else:
+            raise ArgumentError("source: expected a PhantomCase, a truth.json object/path or a tree object")
+        if not -len(trees) <= int(frame) < len(trees):
+            raise ArgumentError(f"frame: expected 0..{len(trees) - 1}, got {frame}")
+        return cls.from_dict(trees[int(frame)], f"{name}: trees_{run}[{frame}]")
+
+    def to_dict(self, step_mm: float = 0.5) -> dict[str, Any]:
+        """The ``centrelines.json`` object; rebuilt branches are sampled every ``step_mm``."""
+        out = []
+        for b in self.branches:
+            if b.spline is not None:
+                pts, rad = b.sample(step_mm)
+            else:
+                pts, rad = b.points, b.radius
+            item: dict[str, Any] = {"id": b.id, "parent": b.parent, "name": b.name,
+                                    "parent_s_mm": None if b.parent_s_mm is None else round(b.parent_s_mm, 4),
+                                    "points": np.round(pts, 5).tolist(), "radius": np.round(rad, 5).tolist()}
+            if any(x is not None for x in b.landmarks):
+                item["landmarks"] = list(b.landmarks)
+            out.append(item)
+        return {"units": "mm", "frame": "LPS", "branches": out}
+
+    def to_json(self, path: str | os.PathLike, step_mm: float = 0.5) -> None:
+        """Write ``centrelines.json`` atomically."""
+        from .io.atomic import atomic_write_text
+
+        atomic_write_text(path, json.dumps(self.to_dict(step_mm)))
+
+    def to_vtp(self, path: str | os.PathLike, step_mm: float = 0.5) -> None:
+        """Write the centrelines as VTK PolyData (.vtp), one polyline per branch.
+
+        Point data: ``MaximumInscribedSphereRadius`` (radius, mm; vmtk's name),
+        ``Abscissas`` (arc length from the branch start, mm). Cell data:
+        ``BranchId``, ``ParentId`` (-1 for a root), ``CenterlineIds`` (index).
+        """
+        from .io.vtp import write_polylines
+
+        lines, radius, absc = [], [], []
+        for b in self.branches:
+            pts, rad = b.sample(step_mm)
+            lines.append(pts)
+            radius.append(rad)
+            absc.append(arc_length(pts))
+        write_polylines(path, lines,
+                        point_data={"MaximumInscribedSphereRadius": radius, "Abscissas": absc},
+                        cell_data={"BranchId": [b.id for b in self.branches],
+                                   "ParentId": [-1 if b.parent is None else b.parent for b in self.branches],
+                                   "CenterlineIds": list(range(len(self.branches)))})
+
+    # -------------------------------------------------------------- rebuild, merge
+    def rebuilt(self, tol_mm: float = TOL_MM) -> VesselTree:
+        """A copy whose branches are rebuilt as cubic B-splines within ``tol_mm`` (see module doc)."""
+        out = []
+        for b in self.branches:
+            spl, err = fit_spine(b.points, tol_mm)
+            s = _project_params(spl, b.points)
+            a, e = float(spl.t[3]), float(spl.t[-4])
+            law = fit_radius_law(s, b.radius, e - a)
+            nb = replace(b, spline=spl, radius_law=law, fit_error_mm=err, warnings=list(b.warnings),
+                         segments=b.segments or (b.id,))
+            if err > tol_mm:
+                nb.warnings.append(f"centreline kept {err:.3f} mm from its points (tolerance {tol_mm} mm): "
+                                   "the points are noisier than the tolerance")
+            out.append(nb)
+        tree = VesselTree(out)
+        tree._locate_children()
+        return tree
+
+    def merged(self, max_angle_deg: float = MAX_MERGE_ANGLE_DEG, tol_mm: float = TOL_MM) -> VesselTree:
+        """A copy in which branches that continue each other are one vessel (see module doc).
+
+        A branch ``p`` and a child ``c`` are merged when ``c`` starts within one
+        radius (at least 1 mm) of ``p``'s end and their tangents there differ by
+        at most ``max_angle_deg``; among several such children the straightest
+        (then the widest) continues ``p``. The merged vessel keeps ``p``'s id and
+        ``segments`` lists both ids; ``c``'s other children are re-attached.
+        """
+        tree = self if all(b.is_fitted for b in self.branches) else self.rebuilt(tol_mm)
+        branches = {b.id: replace(b, warnings=list(b.warnings)) for b in tree.branches}
+        changed = True
+        while changed:
+            changed = False
+            for pid in VesselTree(list(branches.values())).order():
+                p = branches[pid]
+                cand = []
+                a, e = p.domain
+                end_r = float(p.radius_at(e))
+                for c in branches.values():
+                    if c.parent != pid or c.parent_s_mm is None:
+                        continue
+                    if c.parent_s_mm < e - max(end_r, 1.0):
+                        continue
+                    ang = np.degrees(np.arccos(np.clip(p.tangent("end") @ c.tangent("start"), -1.0, 1.0)))
+                    if ang <= max_angle_deg:
+                        cand.append((ang, -float(c.radius_at(c.domain[0])), c.id))
+                if not cand:
+                    continue
+                cand.sort()
+                cid = cand[0][2]
+                merged = _merge_pair(p, branches[cid], tol_mm)
+                branches[pid] = merged
+                for other in branches.values():
+                    if other.parent == cid:
+                        other.parent = pid
+                        other.parent_s_mm = None
+                del branches[cid]
+                changed = True
+                break
+        out = VesselTree(list(branches.values()))
+        out._locate_children()
+        return out
+
+    def _locate_children(self) -> None:
+        """Set ``parent_s_mm`` of every child by projecting its start onto the parent."""
+        for b in self.branches:
+            if b.parent is None:
+                continue
+            par = self._index[b.parent]
+            if par.spline is None:
+                continue
+            s = _project_params(par.spline, b.points[:1])[0] if b.spline is None else \
+                _project_params(par.spline, b.spline(b.domain[0])[None])[0]
+            b.parent_s_mm = float(s)
+
+    # -------------------------------------------------------------- solid
+    def pipe_specs(self, tol_mm: float = TOL_MM, merge: bool = True,
+                   max_merge_angle_deg: float = MAX_MERGE_ANGLE_DEG) -> list[dict[str, Any]]:
+        """Spines and radius laws ready for the pipes, parents first.
+
+        Rebuilds (and merges) if needed, clamps the radius against curvature and
+        at child starts, and moves a child's start onto its parent's centreline
+        when it lies off it. Returns dicts ``{'id', 'name', 'parent', 'spine',
+        'radius', 'warnings'}``.
+        """
+        tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
+        if merge:
+            tree = tree.merged(max_merge_angle_deg, tol_mm)
+        specs = []
+        for bid in tree.order():
+            b = tree[bid]
+            spine, law, warns = b.spline, b.radius_law, list(b.warnings)
+            par = tree[b.parent] if b.parent is not None else None
+            if par is not None:
+                spine, law, w = _start_inside(b, par)
+                warns += w
+            law, w = _clamp_radius(spine, law, par, b)
+            warns += w
+            specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
+                          "radius": law, "warnings": warns})
+        return specs
+
+    def solid(self, tol_mm: float = TOL_MM, merge: bool = True,
+              max_merge_angle_deg: float = MAX_MERGE_ANGLE_DEG, station_step_mm: float = 2.0,
+              progress: bool = False) -> Any:
+        """One fused, valid, watertight OCCT solid of the tree (:class:`vesselcad.kernel.VesselSolid`).
+
+        Parameters
+        ----------
+        tol_mm : float
+            Rebuild tolerance of the centrelines.
+        merge : bool
+            Merge branches that continue each other first (:meth:`merged`).
+        max_merge_angle_deg : float
+        station_step_mm : float
+            Largest spacing of the exact circular sections of the pipes.
+        progress : bool
+            Show a progress bar over the branches.
+
+        Returns
+        -------
+        VesselSolid
+            ``failed`` lists branches left out (with the reason); ``warnings``
+            gathers the branches' warnings (radius clamps, moved starts).
+        """
+        from .kernel.pipes import branch_pipe
+        from .kernel.solid import fuse_pipes
+
+        if not self.branches:
+            raise ArgumentError("tree: no branches")
+        import time
+
+        t0 = time.perf_counter()
+        specs = self.pipe_specs(tol_mm, merge, max_merge_angle_deg)
+        t1 = time.perf_counter()
+        roots = [s for s in specs if s["parent"] is None]
+        failed: dict[int, str] = {}
+        if len(roots) > 1:
+            sizes = {r["id"]: 0 for r in roots}
+            owner: dict[int, int] = {}
+            for s in specs:
+                owner[s["id"]] = s["id"] if s["parent"] is None else owner[s["parent"]]
+                sizes[owner[s["id"]]] += 1
+            keep = max(sizes, key=lambda k: sizes[k])
+            for s in specs:
+                if owner[s["id"]] != keep:
+                    failed[s["id"]] = f"belongs to another root ({owner[s['id']]}); one solid holds one tree"
+        pipes, warnings = [], []
+        it = specs
+        if progress:
+            from tqdm.auto import tqdm
+
+            it = tqdm(specs, desc="pipes", unit="branch")
+        for s in it:
+            warnings += [f"branch {s['id']} ({s['name']}): {w}" for w in s["warnings"]]
+            if s["id"] in failed:
+                continue
+            if s["parent"] is not None and s["parent"] in failed:
+                failed[s["id"]] = f"its parent branch {s['parent']} was left out"
+                continue
+            try:
+                pipes.append(branch_pipe(s["id"], s["name"], s["parent"], s["spine"], s["radius"],
+                                         station_step_mm))
+            except Exception as exc:  # one bad branch never loses the rest
+                failed[s["id"]] = f"pipe could not be built: {exc}"
+        t2 = time.perf_counter()
+        out = fuse_pipes(pipes)
+        out.failed = {**failed, **out.failed}
+        out.warnings = warnings + out.warnings
+        out.timings_s = {"rebuild": t1 - t0, "pipes": t2 - t1, **out.timings_s}
+        out.specs = specs
+        return out
+
+
+# ------------------------------------------------------------------- helpers
+def _project_params(spline: interpolate.BSpline, points: np.ndarray, step: float = 0.05) -> np.ndarray:
+    """Parameters of the nearest curve points (dense sampling + one Newton step)."""
+    k = spline.k
+    a, b = float(spline.t[k]), float(spline.t[-k - 1])
+    u = np.linspace(a, b, max(int((b - a) / step), 2) + 1)
+    c = spline(u)
+    from scipy.spatial import cKDTree
+
+    _, idx = cKDTree(c).query(points)
+    s = u[idx]
+    d1 = spline.derivative(1)(s)
+    d2 = spline.derivative(2)(s)
+    diff = spline(s) - points
+    num = np.einsum("ij,ij->i", diff, d1)
+    den = np.einsum("ij,ij->i", d1, d1) + np.einsum("ij,ij->i", diff, d2)
+    s = s - np.where(np.abs(den) > 1e-12, num / np.where(np.abs(den) > 1e-12, den, 1.0), 0.0)
+    return np.clip(s, a, b)
+
+
+def _merge_pair(p: TreeBranch, c: TreeBranch, tol_mm: float) -> TreeBranch:
+    """One vessel from ``p`` and its continuing child ``c``: C2, with a round bend at the join."""
+    ps = float(c.parent_s_mm) if c.parent_s_mm is not None else p.domain[1]
+    ps = min(ps, p.domain[1])
+    tp = _unit(p.spline.derivative()(ps))
+    tc = c.tangent("start")
+    theta = float(np.arccos(np.clip(tp @ tc, -1.0, 1.0)))
+    r_j = float(p.radius_at(ps))
+    blend = 3.0 * r_j * np.tan(theta / 2.0) + 0.5  # tangent length of a fillet of radius 3 r
+    pa, pb = p.domain
+    ca, cb = c.domain
+    s_p = max(pa, ps - blend)
+    s_c = min(cb - 0.5 * (cb - ca), ca + blend)
+    step = 0.25
+    sp_ = np.linspace(pa, s_p, max(int((s_p - pa) / step), 1) + 1)
+    sc_ = np.linspace(s_c, cb, max(int((cb - s_c) / step), 1) + 1)
+    p0, p1 = p.spline(s_p), c.spline(s_c)
+    t0, t1 = _unit(p.spline.derivative()(s_p)), _unit(c.spline.derivative()(s_c))
+    chord = float(np.linalg.norm(p1 - p0))
+    u = np.linspace(0.0, 1.0, max(int(chord / step), 4) + 1)[1:-1, None]
+    h00, h10 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u
+    h01, h11 = -2 * u**3 + 3 * u**2, u**3 - u**2
+    bridge = h00 * p0 + h10 * chord * t0 + h01 * p1 + h11 * chord * t1
+    pts = np.vstack([p.spline(sp_), bridge, c.spline(sc_)])
+    rad = np.r_[p.radius_at(sp_), np.interp(np.linspace(0, 1, len(bridge)), [0, 1],
+                                             [float(p.radius_at(s_p)), float(c.radius_at(s_c))]),
+                c.radius_at(sc_)]
+    spl, err = fit_spine(pts, tol_mm)
+    s = _project_params(spl, pts)
+    law = fit_radius_law(s, rad, float(spl.t[-4] - spl.t[3]))
+    # deviation of the merged centreline from the two inputs near the join
+    near = np.vstack([p.spline(np.linspace(s_p, ps, 20)), c.spline(np.linspace(ca, s_c, 20))])
+    dev = float(np.max(np.linalg.norm(spl(_project_params(spl, near)) - near, axis=1)))
+    warnings = list(p.warnings) + list(c.warnings)
+    warnings.append(f"merged with branch {c.id} ({c.name}) at {np.degrees(theta):.1f} deg; "
+                    f"the rounded join departs {dev:.3f} mm from the input centrelines")
+    return replace(p, points=pts, radius=rad, name=f"{p.name}/{c.name}" if c.name else p.name,
+                   landmarks=(p.landmarks[0], c.landmarks[1]), segments=tuple(p.segments) + tuple(c.segments),
+                   spline=spl, radius_law=law, fit_error_mm=max(err, p.fit_error_mm, c.fit_error_mm),
+                   warnings=warnings)
+
+
+def _start_inside(b: TreeBranch, par: TreeBranch
+                  ) -> tuple[interpolate.BSpline, interpolate.BSpline, list[str]]:
+    """Spine and radius law of a child that starts on its parent's centreline.
+
+    A start farther than ``MAX_START_GAP_RADII`` parent radii (and 2 mm) from the
+    parent is left alone: such a branch is not attached, and the fusion reports it.
+    """
+    start = b.spline(b.domain[0])
+    s_par = _project_params(par.spline, start[None])[0]
+    foot = par.spline(s_par)
+    gap = float(np.linalg.norm(start - foot))
+    r_par = float(par.radius_at(s_par))
+    if gap <= 0.02 * r_par + 1e-6:
+        return b.spline, b.radius_law, []
+    if gap > max(MAX_START_GAP_RADII * r_par, 2.0):
+        return b.spline, b.radius_law, [f"starts {gap:.1f} mm from its parent's centreline: not attached"]
+    # Prepend the foot point: refit a spine that leaves the parent's axis and joins
+    # the child smoothly within a few radii.
+    a, e = b.domain
+    s = np.linspace(a, e, max(int((e - a) / 0.25), 4) + 1)
+    pts = b.spline(s)
+    join = min(a + 2.0 * float(par.radius_at(s_par)) + gap, a + 0.5 * (e - a))
+    keep = s >= join
+    lead = np.linspace(0.0, 1.0, 12)[:-1, None] * (pts[keep][0] - foot) + foot
+    new_pts = np.vstack([lead, pts[keep]])
+    rad = np.r_[np.full(len(lead), float(b.radius_at(join))), b.radius_at(s[keep])]
+    spl, _ = fit_spine(new_pts, TOL_MM)
+    law = fit_radius_law(_project_params(spl, new_pts), rad, float(spl.t[-4] - spl.t[3]))
+    return spl, law, [f"start moved {gap:.2f} mm onto the parent's centreline"]
+
+
+def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, par: TreeBranch | None,
+                  b: TreeBranch) -> tuple[interpolate.BSpline, list[str]]:
+    """Radius law clamped against curvature (no folding) and at a child's start."""
+    k = spine.k
+    a, e = float(spine.t[k]), float(spine.t[-k - 1])
+    s = np.linspace(a, e, max(int((e - a) / 0.1), 8) + 1)
+    r = np.asarray(law(s)).reshape(-1)
+    limit = CURVATURE_FACTOR / np.maximum(curvature(spine, s), 1e-9)
+    warnings = []
+    if par is not None:
+        r_par = float(par.radius_at(_project_params(par.spline, spine(a)[None])[0]))
+        ramp = np.clip((s - a) / max(2.0 * r_par, 1e-6), 0.0, 1.0)
+        start_lim = CHILD_RADIUS_SHARE * r_par + ramp * 1e3
+        if r[0] > start_lim[0] * 1.05:
+            warnings.append(f"start radius {r[0]:.2f} mm reduced to {start_lim[0]:.2f} mm "
+                            f"({CHILD_RADIUS_SHARE:.0%} of the parent's) so it starts inside the parent")
+        limit = np.minimum(limit, start_lim)
+    curv_lim = CURVATURE_FACTOR / np.maximum(curvature(spine, s), 1e-9)
+    if np.any(r > curv_lim):
+        bad = s[r > curv_lim]
+        warnings.append(f"radius reduced by up to {float(np.max(r - curv_lim)):.2f} mm over "
+                        f"{bad.min():.1f}-{bad.max():.1f} mm, where the centreline bends tighter than "
+                        f"radius / {CURVATURE_FACTOR}")
+    if not np.any(r > limit):
+        return law, warnings
+    # Subtract a smooth reduction that covers the clamp (a max filter widened by
+    # 1.5 mm, then a 0.5 mm Gaussian), so the refit does not ring; where the fit
+    # still overshoots the limit, deepen the reduction there and fit again.
+    step = float(s[1] - s[0])
+    need = np.maximum(r - limit, 0.0)
+    for _ in range(8):
+        wide = ndimage.maximum_filter1d(need, 2 * int(round(1.5 / step)) + 1, mode="nearest")
+        target = r - ndimage.gaussian_filter1d(wide, 0.5 / step, mode="nearest")
+        spl = fit_pspline(s, target[:, None], 0.5, 0.0, domain=(a, e))
+        excess = np.asarray(spl(s)).reshape(-1) - limit
+        if excess.max() <= 1e-3 * float(np.min(limit)):
+            break
+        need = need + np.maximum(excess, 0.0)
+    c = np.maximum(np.asarray(spl.c), MIN_RADIUS_MM)
+    return interpolate.BSpline(spl.t, c, spl.k), warnings
