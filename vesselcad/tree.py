@@ -602,6 +602,8 @@ class VesselTree:
 
         if not self.branches:
             raise ArgumentError("tree: no branches")
+        if not (isinstance(station_step_mm, (int, float)) and station_step_mm > 0):
+            raise ArgumentError(f"station_step_mm: expected a positive number, got {station_step_mm!r}")
         import time
 
         t0 = time.perf_counter()
