@@ -2,7 +2,7 @@
 
 A :class:`VesselTree` is what the reconstruction produces and what the solid
 is built from (paper §2.4 step 4). It reads and writes ``centrelines.json``
-(docs/formats.md), exports centrelines with radius as VTP (vmtk's point-data
+(docs/solids.md), exports centrelines with radius as VTP (vmtk's point-data
 names), and prepares the branches for the pipes:
 
 1. **rebuild** (:meth:`VesselTree.rebuilt`): each branch becomes a clamped
@@ -348,7 +348,7 @@ class VesselTree:
     # -------------------------------------------------------------- files
     @classmethod
     def from_dict(cls, data: Any, source: str = "centrelines") -> VesselTree:
-        """Tree from a ``centrelines.json`` object (see docs/formats.md)."""
+        """Tree from a ``centrelines.json`` object (see docs/solids.md)."""
         if not isinstance(data, dict) or not isinstance(data.get("branches"), list):
             raise InputFileError(f"{source}: expected an object with a 'branches' list")
         units = data.get("units", "mm")
@@ -570,6 +570,7 @@ class VesselTree:
                 warns += w
             law, w = _clamp_radius(spine, law, par, b)
             warns += w
+            warns += _self_approach(spine, law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
                           "radius": law, "warnings": warns})
         return specs
@@ -739,6 +740,29 @@ def _start_inside(b: TreeBranch, par: TreeBranch
     spl, _ = fit_spine(new_pts, TOL_MM)
     law = fit_radius_law(_project_params(spl, new_pts), rad, float(spl.t[-4] - spl.t[3]))
     return spl, law, [f"start moved {gap:.2f} mm onto the parent's centreline"]
+
+
+def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> list[str]:
+    """Warn where a branch's pipe would overlap itself (the centreline comes back near itself)."""
+    from scipy.spatial import cKDTree
+
+    a, e = float(spine.t[3]), float(spine.t[-4])
+    s = np.linspace(a, e, max(int((e - a) / 0.5), 2) + 1)
+    p = spine(s)
+    r = np.ravel(law(s))
+    pairs = cKDTree(p).query_pairs(2.0 * float(r.max()), output_type="ndarray")
+    if len(pairs) == 0:
+        return []
+    i, j = pairs[:, 0], pairs[:, 1]
+    gap = np.linalg.norm(p[i] - p[j], axis=1) - r[i] - r[j]
+    far = np.abs(s[i] - s[j]) > np.pi * (r[i] + r[j])
+    bad = far & (gap < 0)
+    if not np.any(bad):
+        return []
+    k = np.flatnonzero(bad)[np.argmin(gap[bad])]
+    return [f"the pipe overlaps itself: the centreline at {s[i[k]]:.1f} mm and at {s[j[k]]:.1f} mm comes "
+            f"within {float(np.linalg.norm(p[i[k]] - p[j[k]])):.2f} mm (radii {r[i[k]]:.2f} and "
+            f"{r[j[k]]:.2f} mm); booleans with this pipe may fail"]
 
 
 def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, par: TreeBranch | None,

@@ -497,15 +497,17 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
         op = _general_fuse([p.solid for p in pipes], fuzzy_mm, parallel)
         if op is not None:
             shape = op.Shape()
-            n = _count_solids(shape)
-            if n == 1 and BRepCheck_Analyzer(shape).IsValid():
-                history.ops.append(op)
-                result = shape
-            elif n > 1 and BRepCheck_Analyzer(shape).IsValid():
-                # Some branch does not touch the tree: keep the piece holding the root.
-                history.ops.append(op)
-                result = _keep_root_piece(shape, pipes, history, failed)
-                kept = [p for p in pipes if p.branch_id not in failed]
+            trial = _History()
+            trial.ops.append(op)
+            # OCCT can report success and still lose parts: every wall must survive
+            # and the union must hold at least the largest pipe.
+            if BRepCheck_Analyzer(shape).IsValid() and _complete(shape, pipes, trial):
+                history = trial
+                if _count_solids(shape) == 1:
+                    result = shape
+                else:  # pieces: fuse them into the root's piece, report what stays apart
+                    result = _keep_root_piece(shape, pipes, history, failed, fuzzy_mm)
+                    kept = [p for p in pipes if p.branch_id not in failed]
         if result is None:
             warnings.append("general fuse failed; fused the branches one by one in tree order")
             history = _History()
@@ -526,8 +528,24 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     return out
 
 
+def _complete(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History) -> bool:
+    """Whether a union kept a face of every pipe's wall and at least the largest pipe's volume."""
+    faces = {hash(f) for f in _subshapes(shape, TopAbs_FACE)}
+    for p in pipes:
+        if not faces.intersection(hash(f) for f in history.images(p.wall)):
+            return False
+    biggest = max(shape_volume(p.solid) for p in pipes)
+    return shape_volume(shape) >= biggest * (1.0 - 1e-6)
+
+
 def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
-                     failed: dict[int, str]) -> TopoDS_Shape:
+                     failed: dict[int, str], fuzzy: float) -> TopoDS_Shape:
+    """One solid from a union that came out in pieces.
+
+    The general fuse sometimes returns a branch as a separate solid although it
+    overlaps the tree; fusing that piece with the root's piece alone usually
+    succeeds. Pieces that still stay apart are left out and reported.
+    """
     solids = _subshapes(shape, TopAbs_SOLID)
     walls = {p.branch_id: [hash(f) for f in history.images(p.wall)] for p in pipes}
     root = pipes[0].branch_id
@@ -538,7 +556,13 @@ def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _His
 
     keep = next((s for s in solids if root in owner(s)), solids[0])
     for s in solids:
-        if s is keep or s.IsSame(keep):
+        if s.IsSame(keep):
+            continue
+        op = _general_fuse([keep, s], fuzzy)
+        merged = op.Shape() if op is not None else None
+        if merged is not None and _count_solids(merged) == 1 and BRepCheck_Analyzer(merged).IsValid():
+            history.ops.append(op)
+            keep = _subshapes(merged, TopAbs_SOLID)[0]
             continue
         for b in owner(s):
             failed[b] = "does not touch the rest of the tree (its start is not inside its parent)"
@@ -556,7 +580,8 @@ def _pairwise(pipes: list[BranchPipe], fuzzy_mm: float, history: _History, faile
             continue
         op = _general_fuse([current, p.solid], fuzzy_mm)
         shape = op.Shape() if op is not None else None
-        if shape is None or _count_solids(shape) != 1 or not BRepCheck_Analyzer(shape).IsValid():
+        if (shape is None or _count_solids(shape) != 1 or not BRepCheck_Analyzer(shape).IsValid()
+                or shape_volume(shape) < max(shape_volume(current), shape_volume(p.solid)) * (1 - 1e-6)):
             failed[p.branch_id] = "the boolean union with the tree failed"
             continue
         ops.append(op)
