@@ -211,7 +211,8 @@ def measure(anatomy: str, seed: int, render_dir: Path | None = None) -> dict:
         from vesselcad.render import render_mesh
 
         render_dir.mkdir(parents=True, exist_ok=True)
-        render_mesh(solid.to_trimesh(), render_dir / f"solid_{anatomy}_{seed}.png",
+        picture = solid.to_trimesh(tolerance=0.05, angular_deflection=0.5)  # coarse: no decimation
+        render_mesh(picture, render_dir / f"solid_{anatomy}_{seed}.png",
                     title=f"phantom {anatomy.upper()} seed {seed}: {len(solid.branch_ids)} pipes "
                           f"({len(truth['branches'])} branches), one solid, {chk['volume_mm3']:.0f} mm³")
     vol = chk["volume_mm3"]
