@@ -28,8 +28,8 @@ def render_mesh(mesh: Any, path: str | os.PathLike, *, title: str = "", views: t
     views : sequence of (elevation_deg, azimuth_deg)
         One panel per viewpoint (matplotlib's 3D camera angles).
     max_faces : int
-        Larger meshes are decimated by keeping every k-th triangle's shading
-        order (quality is adequate for documentation pictures).
+        Larger meshes are thinned to this many evenly spaced triangles, which
+        leaves gaps: pass a coarser tessellation for pictures instead.
     dpi : int
     """
     import matplotlib

@@ -564,11 +564,11 @@ class VesselTree:
         for bid in tree.order():
             b = tree[bid]
             spine, law, warns = b.spline, b.radius_law, list(b.warnings)
-            par = tree[b.parent] if b.parent is not None else None
-            if par is not None:
-                spine, law, w = _start_inside(b, par)
+            r_parent = None
+            if b.parent is not None:
+                spine, law, w, r_parent = _start_inside(b, tree[b.parent])
                 warns += w
-            law, w = _clamp_radius(spine, law, par, b)
+            law, w = _clamp_radius(spine, law, r_parent)
             warns += w
             warns += _self_approach(spine, law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
@@ -712,8 +712,9 @@ def _merge_pair(p: TreeBranch, c: TreeBranch, tol_mm: float) -> TreeBranch:
 
 
 def _start_inside(b: TreeBranch, par: TreeBranch
-                  ) -> tuple[interpolate.BSpline, interpolate.BSpline, list[str]]:
-    """Spine and radius law of a child that starts on its parent's centreline.
+                  ) -> tuple[interpolate.BSpline, interpolate.BSpline, list[str], float]:
+    """Spine and radius law of a child that starts on its parent's centreline, and
+    the parent's radius there.
 
     A start farther than ``MAX_START_GAP_RADII`` parent radii (and 2 mm) from the
     parent is left alone: such a branch is not attached, and the fusion reports it.
@@ -724,22 +725,23 @@ def _start_inside(b: TreeBranch, par: TreeBranch
     gap = float(np.linalg.norm(start - foot))
     r_par = float(par.radius_at(s_par))
     if gap <= 0.02 * r_par + 1e-6:
-        return b.spline, b.radius_law, []
+        return b.spline, b.radius_law, [], r_par
     if gap > max(MAX_START_GAP_RADII * r_par, 2.0):
-        return b.spline, b.radius_law, [f"starts {gap:.1f} mm from its parent's centreline: not attached"]
+        return (b.spline, b.radius_law, [f"starts {gap:.1f} mm from its parent's centreline: not attached"],
+                r_par)
     # Prepend the foot point: refit a spine that leaves the parent's axis and joins
     # the child smoothly within a few radii.
     a, e = b.domain
     s = np.linspace(a, e, max(int((e - a) / 0.25), 4) + 1)
     pts = b.spline(s)
-    join = min(a + 2.0 * float(par.radius_at(s_par)) + gap, a + 0.5 * (e - a))
+    join = min(a + 2.0 * r_par + gap, a + 0.5 * (e - a))
     keep = s >= join
     lead = np.linspace(0.0, 1.0, 12)[:-1, None] * (pts[keep][0] - foot) + foot
     new_pts = np.vstack([lead, pts[keep]])
     rad = np.r_[np.full(len(lead), float(b.radius_at(join))), b.radius_at(s[keep])]
     spl, _ = fit_spine(new_pts, TOL_MM)
     law = fit_radius_law(_project_params(spl, new_pts), rad, float(spl.t[-4] - spl.t[3]))
-    return spl, law, [f"start moved {gap:.2f} mm onto the parent's centreline"]
+    return spl, law, [f"start moved {gap:.2f} mm onto the parent's centreline"], r_par
 
 
 def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> list[str]:
@@ -765,24 +767,24 @@ def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> list
             f"{r[j[k]]:.2f} mm); booleans with this pipe may fail"]
 
 
-def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, par: TreeBranch | None,
-                  b: TreeBranch) -> tuple[interpolate.BSpline, list[str]]:
-    """Radius law clamped against curvature (no folding) and at a child's start."""
+def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent: float | None
+                  ) -> tuple[interpolate.BSpline, list[str]]:
+    """Radius law clamped against curvature (no folding) and, for a child whose parent has
+    radius ``r_parent`` at its start, below the parent's wall there."""
     k = spine.k
     a, e = float(spine.t[k]), float(spine.t[-k - 1])
     s = np.linspace(a, e, max(int((e - a) / 0.1), 8) + 1)
     r = np.asarray(law(s)).reshape(-1)
-    limit = CURVATURE_FACTOR / np.maximum(curvature(spine, s), 1e-9)
+    curv_lim = CURVATURE_FACTOR / np.maximum(curvature(spine, s), 1e-9)
+    limit = curv_lim
     warnings = []
-    if par is not None:
-        r_par = float(par.radius_at(_project_params(par.spline, spine(a)[None])[0]))
-        ramp = np.clip((s - a) / max(2.0 * r_par, 1e-6), 0.0, 1.0)
-        start_lim = CHILD_RADIUS_SHARE * r_par + ramp * 1e3
+    if r_parent is not None:
+        ramp = np.clip((s - a) / max(2.0 * r_parent, 1e-6), 0.0, 1.0)
+        start_lim = CHILD_RADIUS_SHARE * r_parent + ramp * 1e3
         if r[0] > start_lim[0] * 1.05:
             warnings.append(f"start radius {r[0]:.2f} mm reduced to {start_lim[0]:.2f} mm "
                             f"({CHILD_RADIUS_SHARE:.0%} of the parent's) so it starts inside the parent")
         limit = np.minimum(limit, start_lim)
-    curv_lim = CURVATURE_FACTOR / np.maximum(curvature(spine, s), 1e-9)
     if np.any(r > curv_lim):
         bad = s[r > curv_lim]
         warnings.append(f"radius reduced by up to {float(np.max(r - curv_lim)):.2f} mm over "

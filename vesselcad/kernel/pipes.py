@@ -33,7 +33,7 @@ from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array2OfReal
 from OCP.TopAbs import TopAbs_EDGE, TopAbs_SHELL
 from OCP.TopExp import TopExp, TopExp_Explorer
-from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shell, TopoDS_Solid
+from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape, TopoDS_Shell, TopoDS_Solid
 from scipy import interpolate
 
 from ..errors import GeometryError
@@ -173,6 +173,17 @@ def _boundary_circles(face: TopoDS_Face) -> list:
     return out
 
 
+def _oriented_solid(shell: TopoDS_Shell) -> TopoDS_Shape:
+    """A solid bounded by ``shell``, its faces oriented outward by ``ShapeFix_Solid``."""
+    solid = TopoDS_Solid()
+    builder = BRep_Builder()
+    builder.MakeSolid(solid)
+    builder.Add(solid, shell)
+    fix = ShapeFix_Solid(solid)
+    fix.Perform()
+    return fix.Solid()
+
+
 def tube_solid(surface: Geom_BSplineSurface) -> tuple[TopoDS_Solid, TopoDS_Face, TopoDS_Face, TopoDS_Face]:
     """Close a tube wall with two planar caps.
 
@@ -200,17 +211,12 @@ def tube_solid(surface: Geom_BSplineSurface) -> tuple[TopoDS_Solid, TopoDS_Face,
         if not mk.IsDone():
             raise GeometryError("tube: the end section is not planar")
         caps.append(mk.Face())
-    builder = BRep_Builder()
     shell = TopoDS_Shell()
+    builder = BRep_Builder()
     builder.MakeShell(shell)
     for f in (wall, *caps):
         builder.Add(shell, f)
-    solid = TopoDS_Solid()
-    builder.MakeSolid(solid)
-    builder.Add(solid, shell)
-    fix = ShapeFix_Solid(solid)
-    fix.Perform()
-    fixed = fix.Solid()
+    fixed = _oriented_solid(shell)
     if not is_valid(fixed):
         # Fall back to sewing (re-creates shared edges within tolerance).
         sew = BRepBuilderAPI_Sewing(1e-5)
@@ -220,12 +226,7 @@ def tube_solid(surface: Geom_BSplineSurface) -> tuple[TopoDS_Solid, TopoDS_Face,
         ex = TopExp_Explorer(sew.SewedShape(), TopAbs_SHELL)
         if not ex.More():
             raise GeometryError("tube: could not close the wall into a shell")
-        solid = TopoDS_Solid()
-        builder.MakeSolid(solid)
-        builder.Add(solid, TopoDS.Shell_s(ex.Current()))
-        fix = ShapeFix_Solid(solid)
-        fix.Perform()
-        fixed = fix.Solid()
+        fixed = _oriented_solid(TopoDS.Shell_s(ex.Current()))
         if not is_valid(fixed):
             raise GeometryError("tube: the closed pipe is not a valid solid")
     return TopoDS.Solid_s(fixed), wall, caps[0], caps[1]
@@ -261,5 +262,11 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
     def unit(v: np.ndarray) -> np.ndarray:
         return v / np.linalg.norm(v)
 
+    # Exact volume of a pipe with sections normal to its spine: integral of pi r^2 ds.
+    u = np.linspace(a, b, max(int((b - a) / 0.1), 8) + 1)
+    ds = np.linalg.norm(d(u), axis=1)
+    area = np.pi * np.ravel(radius(u)) ** 2
+    volume = float(np.sum(0.5 * (area[1:] * ds[1:] + area[:-1] * ds[:-1]) * np.diff(u)))
     return BranchPipe(branch_id, name, parent, solid, wall, cap0, cap1, spine(a), spine(b),
-                      unit(d(a)), unit(d(b)), float(np.ravel(radius(a))[0]), float(np.ravel(radius(b))[0]))
+                      unit(d(a)), unit(d(b)), float(np.ravel(radius(a))[0]), float(np.ravel(radius(b))[0]),
+                      volume)

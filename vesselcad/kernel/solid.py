@@ -51,6 +51,9 @@ __all__ = ["BranchPipe", "FaceTag", "VesselSolid", "fuse_pipes", "shape_volume",
 
 #: Fuzzy value of the boolean union (mm): absorbs round-off, far below any feature.
 FUZZY_MM = 1e-5
+#: A union must hold at least this share of the volume of its largest argument
+#: (a boolean that loses a part loses far more; the slack covers quick integration).
+VOLUME_SLACK = 0.99
 
 
 @dataclass
@@ -69,6 +72,9 @@ class BranchPipe:
     start_tangent, end_tangent : (3,) arrays
         Unit spine tangents there (pointing along the vessel, proximal to distal).
     start_radius, end_radius : float
+    tube_volume_mm3 : float
+        Integral of pi r(s)^2 ds along the spine: the pipe's exact volume (sections
+        normal to the spine), used to sanity-check booleans without integrating.
     """
 
     branch_id: int
@@ -84,6 +90,7 @@ class BranchPipe:
     end_tangent: np.ndarray
     start_radius: float
     end_radius: float
+    tube_volume_mm3: float
 
 
 @dataclass(frozen=True)
@@ -528,14 +535,20 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     return out
 
 
+def _quick_volume(shape: TopoDS_Shape) -> float:
+    """Volume with OCCT's default integration (~0.1 %; 2-3x faster than :func:`shape_volume`)."""
+    g = GProp_GProps()
+    BRepGProp.VolumeProperties_s(shape, g, True)
+    return float(g.Mass())
+
+
 def _complete(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History) -> bool:
-    """Whether a union kept a face of every pipe's wall and at least the largest pipe's volume."""
+    """Whether a union kept a face of every pipe's wall and about the largest pipe's volume."""
     faces = {hash(f) for f in _subshapes(shape, TopAbs_FACE)}
     for p in pipes:
         if not faces.intersection(hash(f) for f in history.images(p.wall)):
             return False
-    biggest = max(shape_volume(p.solid) for p in pipes)
-    return shape_volume(shape) >= biggest * (1.0 - 1e-6)
+    return _quick_volume(shape) >= VOLUME_SLACK * max(p.tube_volume_mm3 for p in pipes)
 
 
 def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
@@ -572,6 +585,7 @@ def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _His
 def _pairwise(pipes: list[BranchPipe], fuzzy_mm: float, history: _History, failed: dict[int, str]
               ) -> tuple[TopoDS_Shape, list[BranchPipe]]:
     current: TopoDS_Shape = pipes[0].solid
+    current_volume = pipes[0].tube_volume_mm3
     kept = [pipes[0]]
     ops = []
     for p in pipes[1:]:
@@ -580,12 +594,13 @@ def _pairwise(pipes: list[BranchPipe], fuzzy_mm: float, history: _History, faile
             continue
         op = _general_fuse([current, p.solid], fuzzy_mm)
         shape = op.Shape() if op is not None else None
+        volume = _quick_volume(shape) if shape is not None else 0.0
         if (shape is None or _count_solids(shape) != 1 or not BRepCheck_Analyzer(shape).IsValid()
-                or shape_volume(shape) < max(shape_volume(current), shape_volume(p.solid)) * (1 - 1e-6)):
+                or volume < VOLUME_SLACK * max(current_volume, p.tube_volume_mm3)):
             failed[p.branch_id] = "the boolean union with the tree failed"
             continue
         ops.append(op)
-        current = shape
+        current, current_volume = shape, volume
         kept.append(p)
     history.ops.extend(ops)
     return current, kept
