@@ -60,6 +60,16 @@ def test_bad_json_names_file_and_branch(tmp_path, mutate, message):
     assert "bad.json" in str(info.value)
 
 
+def test_bad_sampling_step(tmp_path):
+    tree = vc.VesselTree.from_json(_tree_dict(
+        [{"id": 0, "parent": None, "points": [[0, 0, 0], [0, 0, 5]], "radius": [1.0, 1.0]}]))
+    for call in (lambda: tree.to_json(tmp_path / "c.json", step_mm=-1),
+                 lambda: tree.to_vtp(tmp_path / "c.vtp", 0)):
+        with pytest.raises(vc.ArgumentError, match="step_mm"):
+            call()
+    assert not list(tmp_path.iterdir())
+
+
 def test_cycle_rejected():
     data = _tree_dict([
         {"id": 0, "parent": 1, "points": [[0, 0, 0], [0, 0, 5]], "radius": [1.0, 1.0]},

@@ -431,6 +431,8 @@ class VesselTree:
 
     def to_dict(self, step_mm: float = 0.5) -> dict[str, Any]:
         """The ``centrelines.json`` object; rebuilt branches are sampled every ``step_mm``."""
+        if not (isinstance(step_mm, (int, float)) and step_mm > 0):
+            raise ArgumentError(f"step_mm: expected a positive number, got {step_mm!r}")
         out = []
         for b in self.branches:
             if b.spline is not None:
