@@ -98,10 +98,12 @@ def fit_spine(points: Any, tol_mm: float = TOL_MM, max_knot_step_mm: float = 20.
     y = np.vstack([p, p[ends]])
 
     def fit(step: float) -> tuple[interpolate.BSpline, float]:
-        spl = fit_pspline(x, y, step, 0.0, domain=(0.0, length))
+        # A whisper of curvature penalty keeps knot spans with few samples from oscillating.
+        spl = fit_pspline(x, y, step, 1e-6, domain=(0.0, length))
         return spl, float(np.max(np.linalg.norm(spl(s) - p, axis=1)))
 
-    lo_n, hi_n = 1, max(int(np.ceil(length / 0.5)), 1)  # number of knot spans
+    # Number of knot spans: at most one per 0.5 mm and one per two samples.
+    lo_n, hi_n = 1, max(min(int(np.ceil(length / 0.5)), (len(p) - 1) // 2), 1)
     hi_n = max(hi_n, int(np.ceil(length / max_knot_step_mm)))
     best = fit(length / hi_n)
     if best[1] > tol_mm:
