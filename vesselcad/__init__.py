@@ -14,6 +14,7 @@ from .errors import (
     DicomError,
     GeometryError,
     InputFileError,
+    MeshError,
     MissingGeometryError,
     OutputError,
     VesselcadError,
@@ -35,6 +36,10 @@ def __getattr__(name: str):
         from .kernel.solid import VesselSolid
 
         return VesselSolid
+    if name == "cfd":  # gmsh and meshio load only for meshing
+        import importlib
+
+        return importlib.import_module(".cfd", __name__)
     raise AttributeError(f"module 'vesselcad' has no attribute {name!r}")
 
 __all__ = [
@@ -62,6 +67,7 @@ __all__ = [
     "VesselTree",
     "TreeBranch",
     "VesselSolid",
+    "cfd",
     "reprojection_error",
     "centreline_error",
     "reconstruction_error",
@@ -73,6 +79,7 @@ __all__ = [
     "MissingGeometryError",
     "DecoderError",
     "OutputError",
+    "MeshError",
     "VesselcadWarning",
     "__version__",
 ]

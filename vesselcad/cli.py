@@ -111,6 +111,57 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_mesh(args: argparse.Namespace) -> int:
+    import warnings
+
+    from . import cfd
+    from .errors import VesselcadWarning
+
+    ext = (args.inlet_extension if args.inlet_extension is not None else args.flow_extensions,
+           args.flow_extensions)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", VesselcadWarning)
+        common = {"edge_factor": args.edge_factor, "flow_extensions": ext, "progress": not args.quiet}
+        if args.surface_only:
+            mesh = cfd.surface_mesh(args.source, **common).metadata["cfd_mesh"]
+        else:
+            mesh = cfd.volume_mesh(args.source, boundary_layers=args.boundary_layers,
+                                   first_layer=args.first_layer, first_layer_mm=args.first_layer_mm,
+                                   growth=args.growth, **common)
+    side = mesh.write(args.out, msh_version=args.msh_version)
+    if args.png:
+        from .render import render_mesh
+
+        surf = mesh.surface()
+        names = {gid: name for name, gid in mesh.groups.items()}
+        render_mesh(surf, args.png, color_by="label", labels=names, views=((25, -60), (-35, 30)),
+                    edge_width=0.1 if len(surf.faces) < 20000 else 0,
+                    title=f"{args.out}: {len(surf.faces)} boundary triangles, {mesh.n_cells} cells")
+    summary = {"out": str(args.out), "boundary_conditions": str(side),
+               "nodes": int(len(mesh.points)),
+               "elements": {k: int(len(v)) for k, v in {**mesh.cells, **mesh.facets}.items()},
+               "quality": mesh.quality, "boundaries": [b.to_dict() for b in mesh.boundaries],
+               "seconds": round(mesh.timings_s.get("total", 0.0), 2),
+               "warnings": mesh.warnings + [str(w.message) for w in caught]}
+    if args.json:
+        print(json.dumps(summary))
+    elif not args.quiet:
+        counts = ", ".join(f"{n} {k}" for k, n in summary["elements"].items())
+        print(f"{args.out}: {summary['nodes']} nodes, {counts} in {summary['seconds']} s")
+        for kind, q in mesh.quality.items():
+            if "scaled_jacobian_min" in q:
+                print(f"  {kind:8s} scaled Jacobian min {q['scaled_jacobian_min']:.3f} mean "
+                      f"{q['scaled_jacobian_mean']:.3f}, inverted {q['inverted']}, aspect ratio max "
+                      f"{q['aspect_ratio_max']:.2f}")
+        for b in mesh.boundaries:
+            print(f"  {b.name:10s} id {b.id:2d}  branch {b.branch:10s} area {b.area_mm2:8.3f} mm^2  "
+                  f"centre {np.round(b.centre, 2).tolist()}  normal {np.round(b.normal, 3).tolist()}")
+        print(f"  boundary conditions: {side}")
+        for w in summary["warnings"]:
+            print(f"  warning: {w}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vesselcad", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"vesselcad {__version__}")
@@ -148,6 +199,33 @@ def _parser() -> argparse.ArgumentParser:
     de.add_argument("--quiet", action="store_true")
     de.add_argument("--json", action="store_true", help="print a JSON summary")
     de.set_defaults(func=_cmd_demo)
+
+    me = sub.add_parser("mesh", help="CFD mesh (gmsh) of a tree: labelled caps, flow extensions, "
+                                     "boundary layers")
+    me.add_argument("source", metavar="DIR_OR_TREE",
+                    help="centrelines.json, a phantom truth.json, or a folder holding one")
+    me.add_argument("--out", required=True,
+                    help="mesh file: .msh, .vtu, .vtk, .xdmf (surface-only also .stl, .ply, .obj)")
+    me.add_argument("--surface-only", action="store_true", help="a labelled triangle surface, no volume")
+    me.add_argument("--flow-extensions", type=float, default=0.0, metavar="N",
+                    help="straight extensions of N diameters at the outlets (and inlet) (0)")
+    me.add_argument("--inlet-extension", type=float, default=None, metavar="N",
+                    help="inlet extension in diameters when it differs from --flow-extensions")
+    me.add_argument("--boundary-layers", type=int, default=0, metavar="N",
+                    help="prism layers at the wall (0)")
+    me.add_argument("--first-layer", type=float, default=0.02, metavar="F",
+                    help="first layer thickness as a fraction of the local radius (0.02)")
+    me.add_argument("--first-layer-mm", type=float, default=None, metavar="MM",
+                    help="first layer thickness in mm, the same everywhere (overrides --first-layer)")
+    me.add_argument("--growth", type=float, default=1.2, help="layer thickness ratio (1.2)")
+    me.add_argument("--edge-factor", type=float, default=0.3, metavar="F",
+                    help="element size as a fraction of the local radius (0.3)")
+    me.add_argument("--msh-version", type=float, choices=[2.2, 4.1], default=4.1,
+                    help="gmsh file version; 2.2 for OpenFOAM's gmshToFoam (4.1)")
+    me.add_argument("--png", metavar="FILE", help="also draw the labelled surface into a PNG")
+    me.add_argument("--quiet", action="store_true")
+    me.add_argument("--json", action="store_true", help="print a JSON summary")
+    me.set_defaults(func=_cmd_mesh)
     return p
 
 

@@ -18,6 +18,7 @@ __all__ = [
     "MissingGeometryError",
     "DecoderError",
     "OutputError",
+    "MeshError",
     "VesselcadWarning",
 ]
 
@@ -62,6 +63,10 @@ class DecoderError(DicomError):
 
 class OutputError(VesselcadError, OSError):
     """An output file or folder cannot be created or written."""
+
+
+class MeshError(VesselcadError, RuntimeError):
+    """The mesher (gmsh) could not mesh a solid; the message names the stage and the surface."""
 
 
 class VesselcadWarning(UserWarning):

@@ -14,7 +14,8 @@ __all__ = ["render_mesh"]
 
 
 def render_mesh(mesh: Any, path: str | os.PathLike, *, title: str = "", views: tuple = ((20, -60), (5, 30)),
-                max_faces: int = 60000, dpi: int = 110) -> None:
+                max_faces: int = 60000, dpi: int = 110, color_by: str = "branch",
+                labels: dict[int, str] | None = None, edge_width: float = 0.0) -> None:
     """Render a triangle mesh to a PNG from one or more viewpoints, atomically.
 
     Parameters
@@ -31,6 +32,12 @@ def render_mesh(mesh: Any, path: str | os.PathLike, *, title: str = "", views: t
         Larger meshes are thinned to this many evenly spaced triangles, which
         leaves gaps: pass a coarser tessellation for pictures instead.
     dpi : int
+    color_by : str
+        The ``face_attributes`` entry whose values colour the triangles.
+    labels : dict of int -> str, optional
+        Names of those values, drawn as a legend (e.g. a CFD mesh's groups).
+    edge_width : float
+        Line width of the triangle edges (0: none), to show a mesh's elements.
     """
     import matplotlib
 
@@ -46,13 +53,19 @@ def render_mesh(mesh: Any, path: str | os.PathLike, *, title: str = "", views: t
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normals /= np.maximum(np.linalg.norm(normals, axis=1), 1e-30)[:, None]
     attrs = getattr(mesh, "face_attributes", {}) or {}
-    branch = np.asarray(attrs.get("branch", np.zeros(len(faces), int)))
+    branch = np.asarray(attrs.get(color_by, np.zeros(len(faces), int)))
     if len(faces) > max_faces:
         keep = np.linspace(0, len(faces) - 1, max_faces).astype(int)
         tri, normals, branch = tri[keep], normals[keep], branch[keep]
     cmap = plt.get_cmap("tab20")
-    _, codes = np.unique(branch, return_inverse=True)
-    base = np.asarray(cmap(codes % 20))[:, :3]
+    values, codes = np.unique(branch, return_inverse=True)
+    palette = np.asarray(cmap(np.arange(len(values)) % 20))[:, :3]
+    if labels:  # named groups (a CFD mesh): grey wall, distinct colours for the caps
+        others = iter(np.asarray(plt.get_cmap("tab10")(np.r_[2, 3, 1, 4, 0, 6, 8, 9, 5]))[:, :3])
+        grey = (0.78, 0.78, 0.78)
+        palette = np.array([grey if labels.get(int(v)) == "wall" else next(others, (0.3, 0.3, 0.3))
+                            for v in values])
+    base = palette[codes]
     fig = plt.figure(figsize=(5.2 * len(views), 5.2))
     lo, hi = verts.min(0), verts.max(0)
     centre, half = (lo + hi) / 2, (hi - lo).max() / 2
@@ -63,7 +76,8 @@ def render_mesh(mesh: Any, path: str | os.PathLike, *, title: str = "", views: t
         light = eye + np.array([0.0, 0.0, 0.6])
         light /= np.linalg.norm(light)
         shade = 0.35 + 0.65 * np.abs(normals @ light)
-        coll = Poly3DCollection(tri, facecolors=np.clip(base * shade[:, None], 0, 1), linewidths=0)
+        coll = Poly3DCollection(tri, facecolors=np.clip(base * shade[:, None], 0, 1), linewidths=edge_width,
+                                edgecolors=(0.1, 0.1, 0.1, 0.6) if edge_width > 0 else None)
         ax.add_collection3d(coll)
         for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre, strict=True):
             setter(c - half, c + half)
@@ -73,6 +87,11 @@ def render_mesh(mesh: Any, path: str | os.PathLike, *, title: str = "", views: t
         ax.set_ylabel("y (P) mm")
         ax.set_zlabel("z (H) mm")
         ax.tick_params(labelsize=7)
+    if labels:
+        from matplotlib.patches import Patch
+
+        handles = [Patch(color=palette[i], label=labels.get(int(v), str(v))) for i, v in enumerate(values)]
+        fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 8), fontsize=8, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()

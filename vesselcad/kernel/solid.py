@@ -213,6 +213,9 @@ class VesselSolid:
     specs : list of dict
         The spines and radius laws the pipes were swept along (when made by
         ``VesselTree.solid``): ``{'id', 'name', 'parent', 'spine', 'radius', 'warnings'}``.
+    extensions : dict of (int, str) -> float
+        Flow extensions added by :meth:`with_flow_extensions`: length (mm) per
+        ``(branch_id, 'inlet' | 'outlet')``.
     """
 
     shape: TopoDS_Solid
@@ -222,6 +225,7 @@ class VesselSolid:
     warnings: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
     specs: list[dict[str, Any]] = field(default_factory=list, repr=False)
+    extensions: dict[tuple[int, str], float] = field(default_factory=dict)
 
     # ------------------------------------------------------------ measures
     @property
@@ -252,9 +256,15 @@ class VesselSolid:
         return sorted({t.branch_id for _f, t in self.faces})
 
     def caps(self) -> list[dict[str, Any]]:
-        """Open ends of the tree: ``{'role', 'branch_id', 'name', 'centre', 'normal', 'radius'}``.
+        """Open ends of the tree.
 
-        ``normal`` points out of the solid; the inlet comes first.
+        Returns
+        -------
+        list of dict
+            ``{'role', 'branch_id', 'name', 'centre', 'normal', 'radius', 'extension_mm'}``;
+            ``normal`` points out of the solid, ``centre`` is the centre of the
+            end face (at the end of a flow extension when there is one). The
+            inlet comes first, then the outlets in branch order.
         """
         out = []
         by_id = {p.branch_id: p for p in self.pipes}
@@ -263,12 +273,56 @@ class VesselSolid:
                 continue
             p = by_id[tag.branch_id]
             if tag.role == "inlet":
-                out.append({"role": "inlet", "branch_id": p.branch_id, "name": p.name,
-                            "centre": p.start.copy(), "normal": -p.start_tangent, "radius": p.start_radius})
+                centre, normal, radius = p.start.copy(), -p.start_tangent, p.start_radius
             else:
-                out.append({"role": "outlet", "branch_id": p.branch_id, "name": p.name,
-                            "centre": p.end.copy(), "normal": p.end_tangent.copy(), "radius": p.end_radius})
+                centre, normal, radius = p.end.copy(), p.end_tangent.copy(), p.end_radius
+            ext = self.extensions.get((p.branch_id, tag.role), 0.0)
+            out.append({"role": tag.role, "branch_id": p.branch_id, "name": p.name,
+                        "centre": centre + ext * normal, "normal": normal, "radius": radius,
+                        "extension_mm": ext})
         out.sort(key=lambda c: (c["role"] != "inlet", c["branch_id"]))
+        return out
+
+    def with_flow_extensions(self, inlet: float = 0.0, outlet: float = 0.0) -> VesselSolid:
+        """The solid with straight cylindrical flow extensions at its open ends.
+
+        Each extension is the end face swept along the end tangent (an exact
+        B-rep cylinder sharing the end circle with the wall), ``inlet`` or
+        ``outlet`` diameters long, as vmtk's flow extensions give CFD users:
+        boundary conditions then sit on straight, developed flow.
+
+        Parameters
+        ----------
+        inlet, outlet : float
+            Extension lengths in diameters of the end (0: none).
+
+        Returns
+        -------
+        VesselSolid
+            A new solid; its extension walls are tagged ``wall`` of the branch
+            and its new end faces ``inlet``/``outlet``; :meth:`caps` reports the
+            moved ends and ``extensions`` the lengths.
+        """
+        for label, v in (("inlet", inlet), ("outlet", outlet)):
+            if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
+                raise ArgumentError(f"with_flow_extensions: {label} must be a number of diameters >= 0, "
+                                    f"got {v!r}")
+        if self.extensions:
+            raise ArgumentError("with_flow_extensions: this solid already has flow extensions")
+        return _extend(self, {"inlet": float(inlet), "outlet": float(outlet)})
+
+    def face_properties(self) -> list[dict[str, Any]]:
+        """Each face's tag, area (mm^2) and centroid (mm), in :attr:`faces` order.
+
+        Lets other tools (the CFD mesher, which reads the solid through its own
+        OCCT) find which of their faces is which.
+        """
+        out = []
+        for face, tag in self.faces:
+            g = _props(face, "area")
+            c = g.CentreOfMass()
+            out.append({"branch_id": tag.branch_id, "name": tag.name, "role": tag.role,
+                        "area": float(g.Mass()), "centroid": np.array([c.X(), c.Y(), c.Z()])})
         return out
 
     def check(self, self_interference: bool = False) -> dict[str, Any]:
@@ -436,6 +490,142 @@ class VesselSolid:
     def __repr__(self) -> str:
         return (f"VesselSolid(branches={len(self.branch_ids)}, faces={len(self.faces)}, "
                 f"failed={sorted(self.failed)}, volume={self.volume:.1f} mm^3)")
+
+
+def _extend(solid: VesselSolid, diameters: dict[str, float]) -> VesselSolid:
+    from OCP.BRep import BRep_Builder
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_Transform
+    from OCP.BRepOffsetAPI import BRepOffsetAPI_ThruSections
+    from OCP.GeomAbs import GeomAbs_Plane
+    from OCP.gp import gp_Trsf, gp_Vec
+    from OCP.TopoDS import TopoDS_Shell
+
+    from .pipes import _oriented_solid
+
+    ends = {(c["branch_id"], c["role"]): c for c in solid.caps()}
+    wanted = {key: 2.0 * c["radius"] * diameters.get(key[1], 0.0) for key, c in ends.items()}
+    free, notes = _free_extension_lengths(solid, ends, wanted)
+    keep: list[tuple[TopoDS_Shape, FaceTag]] = []
+    added: list[tuple[TopoDS_Shape, FaceTag]] = []
+    lengths: dict[tuple[int, str], float] = {}
+    added_volume = 0.0
+    for face, tag in solid.faces:
+        key = (tag.branch_id, tag.role)
+        length = free.get(key, 0.0)
+        if length <= 0:
+            keep.append((face, tag))
+            continue
+        end = ends[key]
+        # A ruled loft from the end circle to its translate: the wall is a B-spline
+        # surface on the very edge the vessel wall ends with (no boolean needed),
+        # and OCCT integrates it exactly (a prism's extrusion surface it does not).
+        rim = BRepTools.OuterWire_s(face)
+        rim_edges = _subshapes(rim, TopAbs_EDGE)
+        move = gp_Trsf()
+        move.SetTranslation(gp_Vec(*(end["normal"] * length)))
+        loft = BRepOffsetAPI_ThruSections(True, True, 1e-6)
+        loft.AddWire(rim)
+        loft.AddWire(TopoDS.Wire_s(BRepBuilderAPI_Transform(rim, move, True).Shape()))
+        loft.CheckCompatibility(False)
+        loft.Build()
+        if not loft.IsDone():
+            raise GeometryError(f"flow extension of branch {tag.branch_id} ({tag.role}): OCCT could not "
+                                "sweep the end circle")
+        body = loft.Shape()
+        for f in _subshapes(body, TopAbs_FACE):
+            on_rim = any(e.IsSame(r) for e in _subshapes(f, TopAbs_EDGE) for r in rim_edges)
+            planar = BRepAdaptor_Surface(TopoDS.Face_s(f)).GetType() == GeomAbs_Plane
+            if planar and on_rim:
+                continue  # the loft's own copy of the end face
+            added.append((f, FaceTag(tag.branch_id, tag.name, tag.role if planar else "wall")))
+        added_volume += shape_volume(body)
+        lengths[(tag.branch_id, tag.role)] = length
+    if not lengths:
+        return solid
+    shell = TopoDS_Shell()
+    builder = BRep_Builder()
+    builder.MakeShell(shell)
+    for f, _t in keep + added:
+        builder.Add(shell, f)
+    shell.Closed(True)
+    new = TopoDS_Solid()
+    builder.MakeSolid(new)
+    builder.Add(new, shell)  # the faces keep their outward orientations
+    if not BRepCheck_Analyzer(new).IsValid():
+        new = _first_solid(_oriented_solid(shell))
+    expected = solid.volume + added_volume
+    if (new is None or not BRepCheck_Analyzer(new).IsValid()
+            or abs(shape_volume(new) - expected) > 1e-3 * expected):
+        raise GeometryError("with_flow_extensions: the extended solid is not valid (a flow extension "
+                            "probably runs into the tree; use shorter extensions)")
+    faces = []
+    tags = keep + added
+    for f in _subshapes(new, TopAbs_FACE):
+        tag = next((t for g, t in tags if g.IsSame(f)), FaceTag(-1, "unknown", "wall"))
+        faces.append((TopoDS.Face_s(f), tag))
+    return VesselSolid(new, faces, solid.pipes, dict(solid.failed), list(solid.warnings) + notes,
+                       dict(solid.timings_s), solid.specs, lengths)
+
+
+def _free_extension_lengths(solid: VesselSolid, ends: dict[tuple[int, str], dict[str, Any]],
+                            wanted: dict[tuple[int, str], float]
+                            ) -> tuple[dict[tuple[int, str], float], list[str]]:
+    """Extension lengths shortened where a straight extension would run into the tree.
+
+    Tested on the centrelines: a point of an extension's axis collides with a
+    vessel (or an earlier extension) when it is closer to that vessel's axis
+    than the sum of the two radii (+ 10%). Samples of the extended branch
+    itself within two radii of its end do not count.
+    """
+    pts, rad, owner, arc = [], [], [], []
+    for spec in solid.specs:
+        if spec["id"] in solid.failed:
+            continue
+        sp, law = spec["spine"], spec["radius"]
+        a, b = float(sp.t[sp.k]), float(sp.t[-sp.k - 1])
+        u = np.linspace(a, b, max(int((b - a) / 0.25), 2) + 1)
+        pts.append(sp(u))
+        rad.append(np.ravel(law(u)))
+        owner.append(np.full(len(u), spec["id"]))
+        arc.append(np.stack([u - a, b - u], axis=1))  # distance along the branch from its start / end
+    if not pts:
+        return {k: v for k, v in wanted.items() if v > 0}, []
+    xyz, rad_all, own, along = np.vstack(pts), np.concatenate(rad), np.concatenate(owner), np.vstack(arc)
+    out: dict[tuple[int, str], float] = {}
+    notes: list[str] = []
+    for key, length in wanted.items():
+        if length <= 0:
+            continue
+        c = ends[key]
+        r, n, centre = c["radius"], c["normal"], c["centre"]
+        s = np.linspace(0.0, length, max(int(length / 0.1), 2) + 1)
+        axis = centre + s[:, None] * n
+        near_end = (own == key[0]) & (along[:, 0 if key[1] == "inlet" else 1] < 2.0 * r)
+        obstacle = ~near_end & ((xyz - centre) @ n > -rad_all)
+        if np.any(obstacle):
+            d = np.linalg.norm(axis[:, None, :] - xyz[obstacle][None, :, :], axis=2)
+            hit = np.any(d < 1.1 * (r + rad_all[obstacle])[None, :], axis=1)
+            if np.any(hit):
+                first = int(np.argmax(hit))
+                short = max(s[first] - r, 0.0)
+                who = sorted({int(o) for o in own[obstacle][np.any(d[first:first + 1] < 1.1 * (
+                    r + rad_all[obstacle])[None, :], axis=0)]})
+                if short < r:  # less than half a diameter: not worth a face
+                    notes.append(f"no flow extension at the {key[1]} of branch {key[0]} ({c['name']}): it "
+                                 f"would run into branch {who}")
+                    continue
+                notes.append(f"flow extension at the {key[1]} of branch {key[0]} ({c['name']}) shortened "
+                             f"from {length:.1f} to {short:.1f} mm: it would run into branch {who}")
+                length = short
+        out[key] = length
+        # later extensions must keep clear of this one too
+        s2 = np.linspace(0.0, length, max(int(length / 0.25), 2) + 1)
+        xyz = np.vstack([xyz, centre + s2[:, None] * n])
+        rad_all = np.concatenate([rad_all, np.full(len(s2), r)])
+        own = np.concatenate([own, np.full(len(s2), -1 - len(out))])
+        along = np.vstack([along, np.full((len(s2), 2), np.inf)])
+    return out, notes
 
 
 def _tag_faces(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
