@@ -16,7 +16,7 @@ import os
 import tempfile
 import time
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ArgumentError, InputFileError, MeshError, VesselcadWarning
-from .quality import aspect_ratio, quality_report
+from .quality import quality_report
 from .sizing import RadiusField
 
 __all__ = ["Boundary", "CFDMesh", "surface_mesh", "volume_mesh", "load_solid",
@@ -357,6 +357,7 @@ def _gmsh_session(verbose: bool, threads: int) -> Iterator[Any]:
     if own:
         gmsh.initialize(readConfigFiles=False, interruptible=False)
     name = f"vesselcad_{os.getpid()}_{time.monotonic_ns()}"
+    views_before = set(gmsh.view.getTags())
     gmsh.model.add(name)
     try:
         gmsh.option.setNumber("General.Terminal", 1 if verbose else 0)
@@ -370,7 +371,7 @@ def _gmsh_session(verbose: bool, threads: int) -> Iterator[Any]:
             gmsh.model.setCurrent(name)
             gmsh.model.remove()
         with contextlib.suppress(Exception):
-            for v in gmsh.view.getTags():
+            for v in set(gmsh.view.getTags()) - views_before:
                 gmsh.view.remove(v)
         if own:
             gmsh.finalize()
@@ -502,13 +503,18 @@ def _radius_view(gmsh: Any, walls: list[int], field: RadiusField) -> int:
     return gmsh.view.getIndex(view)
 
 
-def _cap_of(points: np.ndarray, caps: list[dict[str, Any]]) -> int | None:
-    """The cap whose plane holds all these points (within 5% of its radius), if any."""
+def _cap_of(points: np.ndarray, caps: list[dict[str, Any]], layer_mm: Callable[[float], float]) -> int | None:
+    """The cap whose plane holds all these points, if any.
+
+    Within 5% of its radius, plus the boundary layers' thickness: where a cap's
+    rim runs along another vessel's wall the layer ribbon leaves the plane by
+    up to that much.
+    """
     for i, c in enumerate(caps):
         off = points - c["centre"]
         axial = np.abs(off @ c["normal"])
         radial = np.linalg.norm(off - np.outer(off @ c["normal"], c["normal"]), axis=1)
-        if axial.max() <= 0.05 * c["radius"] and radial.max() <= 1.05 * c["radius"]:
+        if axial.max() <= 0.05 * c["radius"] + layer_mm(c["radius"]) and radial.max() <= 1.05 * c["radius"]:
             return i
     return None
 
@@ -556,7 +562,10 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
             gmsh.model.occ.importShapes(str(brep))
             gmsh.model.occ.synchronize()
             faces = _match_faces(gmsh, solid, caps)
-            exact = {f.cap: f.area for f in faces.values() if f.cap is not None}
+            exact: dict[int, float] = {}
+            for f in faces.values():
+                if f.cap is not None:  # an end cut in two by another vessel has two faces
+                    exact[f.cap] = exact.get(f.cap, 0.0) + f.area
             overrides = {}
             for face in faces.values():
                 if face.cap is None:
@@ -586,7 +595,12 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
                 gmsh.model.mesh.generate(3)
                 timings["volume"] = time.perf_counter() - t2
                 step("volume mesh")
-            mesh = _extract(gmsh, faces, caps, field, volume, exact)
+            total = sum(growth**i for i in range(boundary_layers)) if volume else 0.0
+
+            def layer_mm(radius: float) -> float:
+                return total * (first_layer_mm if first_layer_mm is not None else first_layer * radius)
+
+            mesh = _extract(gmsh, faces, caps, field, volume, exact, layer_mm)
     except MeshError:
         raise
     except Exception as exc:  # gmsh raises plain Exceptions with its last error message
@@ -601,9 +615,6 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
     t3 = time.perf_counter()
     cells = {**mesh.cells, **mesh.facets}
     mesh.quality = quality_report(mesh.points, cells)
-    if "triangle" in mesh.facets and len(mesh.facets["triangle"]):
-        ar = aspect_ratio(mesh.points, mesh.facets["triangle"], "triangle")
-        mesh.quality["triangle"]["aspect_ratio_max"] = float(ar.max())
     timings["quality"] = time.perf_counter() - t3
     timings["total"] = time.perf_counter() - t0
     mesh.timings_s = timings
@@ -612,9 +623,9 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
     for b in mesh.boundaries:
         full = np.pi * b.radius_mm**2
         if abs(b.exact_area_mm2 - full) > 0.05 * full:
-            mesh.warnings.append(f"{b.name} (branch {b.branch}) is not a whole disc: {b.exact_area_mm2:.3g} "
-                                 "mm^2 "
-                                 f"of pi r^2 = {full:.3g} mm^2 (the vessel end touches another vessel)")
+            mesh.warnings.append(f"{b.name} (branch {b.branch}) is not a whole disc: "
+                                 f"{b.exact_area_mm2:.3g} mm^2 of pi r^2 = {full:.3g} mm^2 "
+                                 "(the vessel end touches another vessel)")
     inverted = sum(q.get("inverted", 0) for q in mesh.quality.values())
     if inverted:
         msg = f"the volume mesh has {inverted} inverted elements"
@@ -676,7 +687,7 @@ def _boundary_layers(gmsh: Any, faces: dict[int, _Face], walls: list[int], field
 
 
 def _extract(gmsh: Any, faces: dict[int, _Face], caps: list[dict[str, Any]], field: RadiusField,
-             volume: bool, exact: dict[int, float]) -> CFDMesh:
+             volume: bool, exact: dict[int, float], layer_mm: Callable[[float], float]) -> CFDMesh:
     tags, xyz = _node_coords(gmsh)
     cells: dict[str, list[np.ndarray]] = {}
     if volume:
@@ -711,9 +722,15 @@ def _extract(gmsh: Any, faces: dict[int, _Face], caps: list[dict[str, Any]], fie
         idx = {k: _lookup(tags, v[1]) for k, v in els.items()}
         face = faces.get(tag)
         cap = face.cap if face is not None else _cap_of(xyz[np.unique(np.concatenate(
-            [v.ravel() for v in idx.values()]))], caps)
+            [v.ravel() for v in idx.values()]))], caps, layer_mm)
         if face is None and cap is None:
-            raise MeshError(f"boundary surface {tag} is neither wall nor a cap")
+            pts = xyz[np.unique(np.concatenate([v.ravel() for v in idx.values()]))]
+            near = min(caps, key=lambda c: float(np.linalg.norm(pts.mean(axis=0) - c["centre"])))
+            off = pts - near["centre"]
+            raise MeshError(f"boundary surface {tag} is neither wall nor a cap (nearest cap: {near['role']} "
+                            f"of branch {near['branch_id']}, r {near['radius']:.3f} mm; its points lie "
+                            f"{np.abs(off @ near['normal']).max():.3f} mm off that plane and "
+                            f"{np.linalg.norm(off, axis=1).max():.3f} mm from its centre)")
         for kind, f in idx.items():
             if cap is not None:  # planar: orient each facet by the cap normal
                 flip = _facet_normals(xyz, f) @ caps[cap]["normal"] < 0

@@ -268,9 +268,12 @@ class VesselSolid:
         """
         out = []
         by_id = {p.branch_id: p for p in self.pipes}
+        seen = set()
         for _f, tag in self.faces:
-            if tag.role not in ("inlet", "outlet"):
+            # an end face cut in two by another vessel is still one end
+            if tag.role not in ("inlet", "outlet") or (tag.branch_id, tag.role) in seen:
                 continue
+            seen.add((tag.branch_id, tag.role))
             p = by_id[tag.branch_id]
             if tag.role == "inlet":
                 centre, normal, radius = p.start.copy(), -p.start_tangent, p.start_radius
@@ -505,7 +508,20 @@ def _extend(solid: VesselSolid, diameters: dict[str, float]) -> VesselSolid:
 
     ends = {(c["branch_id"], c["role"]): c for c in solid.caps()}
     wanted = {key: 2.0 * c["radius"] * diameters.get(key[1], 0.0) for key, c in ends.items()}
-    free, notes = _free_extension_lengths(solid, ends, wanted)
+    # an end face that another vessel cuts (several faces, or not the whole disc) gets no extension
+    pieces: dict[tuple[int, str], list[TopoDS_Face]] = {}
+    for face, tag in solid.faces:
+        if tag.role in ("inlet", "outlet"):
+            pieces.setdefault((tag.branch_id, tag.role), []).append(face)
+    notes: list[str] = []
+    for key, faces_ in pieces.items():
+        disc = np.pi * ends[key]["radius"] ** 2
+        if wanted.get(key, 0.0) > 0 and (len(faces_) > 1 or abs(shape_area(faces_[0]) - disc) > 0.05 * disc):
+            wanted[key] = 0.0
+            notes.append(f"no flow extension at the {key[1]} of branch {key[0]} ({ends[key]['name']}): "
+                         "another vessel cuts its end face")
+    free, more = _free_extension_lengths(solid, ends, wanted)
+    notes += more
     keep: list[tuple[TopoDS_Shape, FaceTag]] = []
     added: list[tuple[TopoDS_Shape, FaceTag]] = []
     lengths: dict[tuple[int, str], float] = {}
