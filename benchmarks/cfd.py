@@ -7,7 +7,9 @@ For each phantom tree (frame 0 of run A's ground truth) this builds the solid
   triangles, and whether it is a *watertight labelled surface*: closed,
   consistently oriented, positive volume within 2% of the B-rep's, exactly one
   inlet and one outlet per open end of the solid, every cap's facets lying in
-  its plane (within 1 um) with the meshed cap area within 1% of the exact disc;
+  its plane (within 1 um) with the meshed cap area within 1% of the exact disc
+  (ends that another vessel cuts, "cut ends" in the table, are not discs: their
+  facets must lie in the plane, their area is not compared);
 - a tetrahedral volume mesh (``vc.cfd.volume_mesh``): seconds, elements, min /
   mean scaled Jacobian (Verdict's definition, computed by vesselcad.cfd.quality
   and checked against numpy determinants for sign), inverted elements;
@@ -59,7 +61,8 @@ def labelled_surface_ok(mesh: vc.cfd.CFDMesh, solid) -> tuple[bool, str]:
         pts = surf.vertices[surf.faces[sel]].reshape(-1, 3)
         if len(pts) == 0 or np.abs((pts - b.centre) @ b.normal).max() > 1e-3:
             return False, f"{b.name} facets off its plane"
-        if abs(surf.area_faces[sel].sum() - b.exact_area_mm2) > 0.01 * b.exact_area_mm2:
+        whole = abs(b.exact_area_mm2 - np.pi * b.radius_mm**2) <= 0.05 * np.pi * b.radius_mm**2
+        if whole and abs(surf.area_faces[sel].sum() - b.exact_area_mm2) > 0.01 * b.exact_area_mm2:
             return False, f"{b.name} area {surf.area_faces[sel].sum():.3f} vs {b.exact_area_mm2:.3f}"
     return True, ""
 
@@ -96,7 +99,7 @@ def summarise(mesh: vc.cfd.CFDMesh) -> dict:
     }
 
 
-def measure(anatomy: str, seed: int, layers: int, extensions: float) -> dict:
+def measure(anatomy: str, seed: int, layers: int, extensions: float, surface_only: bool = False) -> dict:
     case = generate_case(seed, anatomy, n_frames=1, rows=128, cols=128)
     tree = vc.VesselTree.from_truth(case)
     solid = tree.solid()
@@ -123,10 +126,11 @@ def measure(anatomy: str, seed: int, layers: int, extensions: float) -> dict:
             }
         except vc.VesselcadError as exc:
             row["surface"] = {"error": str(exc)[:160]}
-        for key, kwargs in (
+        volumes = () if surface_only else (
             ("tets", {}),
             ("layers", {"boundary_layers": layers, "flow_extensions": extensions}),
-        ):
+        )
+        for key, kwargs in volumes:
             try:
                 row[key] = summarise(vc.cfd.volume_mesh(solid, **kwargs))
             except vc.VesselcadError as exc:
@@ -193,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=3000)
     ap.add_argument("--layers", type=int, default=3)
     ap.add_argument("--extensions", type=float, default=2.0)
+    ap.add_argument("--surface-only", action="store_true", help="skip the volume meshes")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--render", type=Path, help="write the picture of a meshed bifurcation here")
     args = ap.parse_args(argv)
@@ -204,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for anat, seed in tqdm(jobs, desc="trees", unit="tree"):
         try:
-            rows.append(measure(anat, seed, args.layers, args.extensions))
+            rows.append(measure(anat, seed, args.layers, args.extensions, args.surface_only))
         except Exception as exc:  # one bad tree never hides the others
             rows.append({"anatomy": anat, "seed": seed, "error": f"{type(exc).__name__}: {exc}"})
     print(
@@ -222,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         if "error" in r:
             print(f"| {r['anatomy']} | {r['seed']} | error: {r['error']} |" + " |" * 13)
             continue
-        s, t, b = r["surface"], r["tets"], r["layers"]
+        skipped = {"error": "skipped (--surface-only)"}
+        s, t, b = r["surface"], r.get("tets", skipped), r.get("layers", skipped)
         cut = r["surface"].get("cut_ends", "–")
         cols = [r["anatomy"], r["seed"], f"{r['pipes']} ({r['failed']})", f"{r['outlets']} ({cut})"]
         if "error" in s:
@@ -257,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
         print("| " + " | ".join(str(c) for c in cols) + " |")
     ok = [r for r in rows if "error" not in r]
     surf = [r["surface"] for r in ok if "error" not in r["surface"]]
-    tets = [r["tets"] for r in ok if "error" not in r["tets"]]
-    lay = [r["layers"] for r in ok if "error" not in r["layers"]]
+    tets = [r["tets"] for r in ok if "error" not in r.get("tets", {"error": ""})]
+    lay = [r["layers"] for r in ok if "error" not in r.get("layers", {"error": ""})]
     print()
     print("| measure | goal | result |")
     print("|---|---|---|")
