@@ -181,10 +181,12 @@ def render_cfd_mesh(mesh: Any, path: str | os.PathLike, *, origin: np.ndarray, n
     label_all = np.asarray(surf.face_attributes["label"])
     tri_all = surf.vertices[surf.faces]
     values = np.unique(label_all)
-    others = iter(np.asarray(plt.get_cmap("tab10")(np.r_[2, 3, 1, 4, 6, 8, 9, 5]))[:, :3])
+    # no greys among the caps: tab20 without its grey pair, cycled
+    caps_cmap = np.asarray(plt.get_cmap("tab20")(np.r_[4, 6, 2, 8, 0, 12, 16, 18, 10, 5, 7, 3, 9, 1, 13, 17,
+                                                       19, 11]))[:, :3]
+    others = (caps_cmap[i % len(caps_cmap)] for i in range(len(values)))
     grey = (0.8, 0.8, 0.8)
-    palette = {int(v): grey if names.get(int(v)) == "wall" else tuple(next(others, (0.3, 0.3, 0.3)))
-               for v in values}
+    palette = {int(v): grey if names.get(int(v)) == "wall" else tuple(next(others)) for v in values}
     light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     fig = plt.figure(figsize=(15, 5.4))
 
@@ -218,6 +220,10 @@ def render_cfd_mesh(mesh: Any, path: str | os.PathLike, *, origin: np.ndarray, n
           0.2, f"{inlet.name} ({inlet.branch}), close up")
     ax3 = fig.add_subplot(1, 3, 3)
     polys = section_polygons(mesh.points, mesh.cells, np.asarray(origin, float), np.asarray(normal, float))
+    # keep the vessel the plane was put across (within 3 radii of the origin)
+    reach = 3.0 * float(np.max([b.radius_mm for b in mesh.boundaries] or [np.inf]))
+    polys = {k: [p for p in v if np.linalg.norm(p.mean(axis=0)) < reach] for k, v in polys.items()}
+    polys = {k: v for k, v in polys.items() if v}
     colour = {"tetra": (0.62, 0.76, 0.96), "wedge": (0.99, 0.86, 0.45), "pyramid": (0.7, 0.9, 0.6)}
     for kind, ps in polys.items():
         ax3.add_collection(PolyCollection(ps, facecolors=colour[kind], edgecolors=(0.1, 0.1, 0.1),
