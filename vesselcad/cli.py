@@ -115,8 +115,15 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
     import warnings
 
     from . import cfd
-    from .errors import VesselcadWarning
+    from .errors import ArgumentError, VesselcadWarning
 
+    suffix = Path(args.out).suffix.lower()
+    volume_ok = {".msh", ".vtu", ".vtk", ".xdmf"}
+    if suffix not in volume_ok | ({".stl", ".ply", ".obj", ".glb"} if args.surface_only else set()):
+        raise ArgumentError(f"--out {args.out}: a {'surface' if args.surface_only else 'volume'} mesh "
+                            f"cannot be written as {suffix or 'a file without suffix'}; use "
+                            + ", ".join(sorted(volume_ok))
+                            + (", .stl, .ply, .obj, .glb" if args.surface_only else ""))
     ext = (args.inlet_extension if args.inlet_extension is not None else args.flow_extensions,
            args.flow_extensions)
     with warnings.catch_warnings(record=True) as caught:

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ArgumentError, InputFileError, MeshError, VesselcadWarning
-from .quality import quality_report
+from .quality import NODES_PER_CELL, quality_report
 from .sizing import RadiusField
 
 __all__ = ["Boundary", "CFDMesh", "surface_mesh", "volume_mesh", "load_solid",
@@ -385,8 +385,8 @@ def _elements(gmsh: Any, dim: int, tag: int) -> dict[str, tuple[np.ndarray, np.n
         kind = _GMSH_TYPES.get(int(t))
         if kind is None:
             continue
-        k = {"triangle": 3, "quad": 4, "tetra": 4, "wedge": 6, "pyramid": 5}[kind]
-        out[kind] = (np.asarray(e, dtype=np.int64), np.asarray(n, dtype=np.int64).reshape(-1, k))
+        nodes = np.asarray(n, dtype=np.int64).reshape(-1, NODES_PER_CELL[kind])
+        out[kind] = (np.asarray(e, dtype=np.int64), nodes)
     return out
 
 
