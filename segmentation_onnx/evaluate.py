@@ -1,0 +1,107 @@
+"""Score ONNX segmentation models exactly as the package runs them (``vesselcad.Segmenter``).
+
+* per-class IoU and mIoU (dataset-level, over all pixels) on the fixed held-out
+  phantom test set (:func:`segmentation_onnx.data.render_test_set`: 120 phantoms
+  never trained on, 2 frames each, 512 x 512);
+* vessel Dice and IoU on the real validation split (10 CIMAT angiograms,
+  :data:`segmentation_onnx.data.REAL_VAL_IDS`, never trained on), per image and
+  pooled;
+* inference time per 512 x 512 frame with onnxruntime on a given number of threads.
+
+Needs onnxruntime only (no torch). Example::
+
+    python -m segmentation_onnx.evaluate segmentation_onnx/gated_unet.onnx segmentation_onnx/unet.onnx
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vesselcad.segment import CLASSES, Segmenter
+
+from .data import REAL_VAL_IDS, load_real, render_test_set
+
+
+def iou_per_class(pred: np.ndarray, truth: np.ndarray, n: int = len(CLASSES)) -> np.ndarray:
+    """Dataset-level IoU of each class (NaN where a class occurs in neither)."""
+    idx = truth.astype(np.int64).ravel() * n + pred.astype(np.int64).ravel()
+    cm = np.bincount(idx, minlength=n * n).reshape(n, n)
+    tp = np.diag(cm).astype(float)
+    den = cm.sum(0) + cm.sum(1) - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, tp / den, np.nan)
+
+
+def evaluate_phantom(model: str | os.PathLike, frames: np.ndarray, labels: np.ndarray,
+                     threads: int | None = None) -> dict[str, float]:
+    """Per-class IoU (``iou_<class>``) and ``miou`` (mean over the five classes)."""
+    pred = Segmenter(model, threads=threads)(frames)
+    iou = iou_per_class(pred, labels)
+    return {**{f"iou_{c}": float(v) for c, v in zip(CLASSES, iou, strict=True)},
+            "miou": float(np.nanmean(iou))}
+
+
+def evaluate_real(model: str | os.PathLike, real_dir: str | os.PathLike | None = None,
+                  threads: int | None = None) -> dict[str, object]:
+    """Vessel Dice/IoU on the real validation split: mean of the images and pooled pixels."""
+    imgs, masks = load_real(REAL_VAL_IDS, real_dir)
+    seg = Segmenter(model, threads=threads)
+    dices, ious, inter, tot, union = [], [], 0, 0, 0
+    for im, gt in zip(imgs, masks, strict=True):
+        p = seg(im) == 1
+        i, s, u = np.logical_and(p, gt).sum(), p.sum() + gt.sum(), np.logical_or(p, gt).sum()
+        dices.append(2 * i / max(s, 1))
+        ious.append(i / max(u, 1))
+        inter, tot, union = inter + i, tot + s, union + u
+    return {"dice_mean": float(np.mean(dices)), "dice_pooled": float(2 * inter / tot),
+            "iou_mean": float(np.mean(ious)), "dice_per_image": [round(float(d), 4) for d in dices]}
+
+
+def time_inference(model: str | os.PathLike, threads: int = 2, size: int = 512,
+                   repeats: int = 10) -> float:
+    """Median milliseconds per ``size`` x ``size`` frame (one frame per call, after a warm-up)."""
+    from vesselcad.phantom import render
+
+    frame = render(12345, rows=size, cols=size).frames[0]
+    seg = Segmenter(model, threads=threads, batch_size=1)
+    seg(frame)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        seg(frame)
+        times.append(time.perf_counter() - t)
+    return float(np.median(times) * 1000)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m segmentation_onnx.evaluate",
+                                 description=__doc__.split("\n")[0])
+    ap.add_argument("models", nargs="+", help=".onnx files")
+    ap.add_argument("--phantoms", type=int, default=120, help="test phantoms (2 frames each)")
+    ap.add_argument("--cache", default=str(Path.home() / ".cache/vesselcad/seg_test_set.npz"))
+    ap.add_argument("--real-dir")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", help="also write the scores here")
+    a = ap.parse_args(argv)
+    frames, labels = render_test_set(a.phantoms, cache=a.cache)
+    rows = {}
+    for m in a.models:
+        r = evaluate_phantom(m, frames, labels, threads=a.threads)
+        r.update(evaluate_real(m, a.real_dir, threads=a.threads))
+        r["ms_per_512_frame"] = time_inference(m, threads=a.threads)
+        rows[Path(m).name] = r
+        shown = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
+        print(Path(m).name, json.dumps(shown))
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

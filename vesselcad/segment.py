@@ -1,0 +1,289 @@
+"""Semantic segmentation of X-ray angiography frames with the bundled gated U-Net (onnxruntime).
+
+Every frame is labelled pixel by pixel as 0 background, 1 vessel, 2 catheter,
+3 balloon or 4 pacing lead (:data:`CLASSES`). The model was trained with
+PyTorch (``segmentation_onnx/``, see its MODEL_CARD.md) and ships as an ONNX
+file; only onnxruntime runs here.
+
+Frames of any size and integer or float dtype are accepted: each frame is
+normalized on its own (robust percentiles of its exposed pixels, so black
+collimator or image-intensifier borders do not squash the contrast), frames
+larger than ``max_side`` are scaled down for the network and the result is
+scaled back, and each batch is padded to a multiple of 16 by reflection.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .errors import ArgumentError, InputFileError
+
+__all__ = ["Segmenter", "CLASSES", "CLASS_COLOURS", "normalize_frames", "overlay_labels",
+           "bundled_model_path"]
+
+#: Class index -> name of the label maps.
+CLASSES: tuple[str, ...] = ("background", "vessel", "catheter", "balloon", "lead")
+_MULTIPLE = 16
+_BUNDLED = "gated_unet.onnx"
+
+
+def bundled_model_path(name: str = _BUNDLED) -> Path:
+    """Path of a model file shipped in the ``segmentation_onnx`` package data.
+
+    Parameters
+    ----------
+    name : str
+        File name inside the package (``'gated_unet.onnx'``, ``'unet.onnx'``, ...).
+    """
+    from importlib import resources
+
+    try:
+        ref = resources.files("segmentation_onnx") / name
+    except ModuleNotFoundError as exc:  # pragma: no cover - broken install
+        raise InputFileError("segmentation_onnx: the package holding the bundled model is not "
+                             "installed; reinstall vesselcad") from exc
+    path = Path(str(ref))
+    if not path.is_file():
+        raise InputFileError(f"{path}: bundled segmentation model not found; reinstall vesselcad "
+                             "or pass model='path/to/model.onnx'")
+    return path
+
+
+def normalize_frames(frames: np.ndarray) -> np.ndarray:
+    """Per-frame robust normalization to the network's input range (float32, about -1..1).
+
+    Each frame is mapped linearly so that the 1st and 99th percentiles of its
+    exposed pixels go to -1 and 1 (clipped to -2..2). Pixels at the frame's
+    minimum or maximum value (black collimator blades, the corners outside an
+    image intensifier's circle, saturated lung) are left out of the
+    percentiles when they cover less than half the frame.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (N, H, W)
+        Any real dtype.
+
+    Returns
+    -------
+    ndarray of float32, shape (N, H, W)
+    """
+    x = np.asarray(frames)
+    if x.ndim != 3:
+        raise ArgumentError(f"frames: expected shape (N, H, W), got {x.shape}")
+    x = x.astype(np.float32, copy=False)
+    n = x.shape[0]
+    step = max(1, int(np.sqrt(x.shape[1] * x.shape[2] / 40_000)))  # ~40k samples per frame
+    sub = x[:, ::step, ::step].reshape(n, -1)
+    lo_v = sub.min(axis=1, keepdims=True)
+    hi_v = sub.max(axis=1, keepdims=True)
+    exposed = (sub > lo_v) & (sub < hi_v)
+    use = np.where(exposed.mean(axis=1, keepdims=True) >= 0.5, exposed, True)
+    masked = np.where(use, sub, np.nan)
+    lo, hi = np.nanpercentile(masked, [1.0, 99.0], axis=1)
+    scale = np.maximum(hi - lo, 1e-6 * np.maximum(np.abs(hi), 1.0))
+    out = (x - lo[:, None, None]) / scale[:, None, None] * 2.0 - 1.0
+    return np.clip(out, -2.0, 2.0, out=out).astype(np.float32, copy=False)
+
+
+@dataclass(frozen=True)
+class _ModelIO:
+    input: str
+    output: str
+    n_classes: int
+
+
+class Segmenter:
+    """Label X-ray angiography frames with the bundled (or a given) ONNX segmentation model.
+
+    Parameters
+    ----------
+    model : path-like, optional
+        An ``.onnx`` file with one input ``(N, 1, H, W)`` float32 and one
+        output ``(N, C, H, W)`` of class logits (C >= 2; class order as in
+        :data:`CLASSES`). Default: the bundled gated U-Net.
+    threads : int, optional
+        onnxruntime intra-op threads (default: all cores onnxruntime sees).
+    batch_size : int
+        Frames per network call.
+    max_side : int
+        Frames whose longer side exceeds this are scaled down for the
+        network (vessel widths then match what it was trained on) and the
+        results scaled back to the input size. ``0`` disables scaling.
+    providers : sequence of str, optional
+        onnxruntime execution providers (default CPU).
+
+    Examples
+    --------
+    >>> seg = Segmenter()
+    >>> labels = seg(frames)                       # (N, H, W) uint8
+    >>> labels, proba = seg(frames, return_proba=True)   # proba (N, 5, H, W) float32
+    """
+
+    def __init__(self, model: str | os.PathLike | None = None, *, threads: int | None = None,
+                 batch_size: int = 4, max_side: int = 768, providers: Sequence[str] | None = None):
+        import onnxruntime as ort
+
+        path = bundled_model_path() if model is None else Path(model)
+        if not path.is_file():
+            raise InputFileError(f"{path}: segmentation model file not found")
+        if int(batch_size) < 1:
+            raise ArgumentError(f"batch_size: expected >= 1, got {batch_size}")
+        if threads is not None and int(threads) < 1:
+            raise ArgumentError(f"threads: expected >= 1, got {threads}")
+        if int(max_side) != 0 and int(max_side) < 64:
+            raise ArgumentError(f"max_side: expected 0 or >= 64, got {max_side}")
+        opts = ort.SessionOptions()
+        if threads is not None:
+            opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        opts.log_severity_level = 3
+        try:
+            self._session = ort.InferenceSession(str(path), opts,
+                                                 providers=list(providers or ["CPUExecutionProvider"]))
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise InputFileError(f"{path}: not a loadable ONNX model ({exc})") from exc
+        self._io = self._check_io(path)
+        self.path = path
+        self.batch_size = int(batch_size)
+        self.max_side = int(max_side)
+        self.threads = threads
+
+    def _check_io(self, path: Path) -> _ModelIO:
+        ins, outs = self._session.get_inputs(), self._session.get_outputs()
+        if len(ins) != 1 or len(outs) < 1:
+            raise InputFileError(f"{path}: expected a model with one input and one output, got "
+                                 f"{len(ins)} inputs and {len(outs)} outputs")
+        i, o = ins[0], outs[0]
+        if len(i.shape) != 4 or i.shape[1] not in (1, "1") or "float" not in i.type:
+            raise InputFileError(f"{path}: input {i.name!r} must be float (N, 1, H, W), "
+                                 f"got {i.type} {i.shape}")
+        if len(o.shape) != 4 or "float" not in o.type:
+            raise InputFileError(f"{path}: output {o.name!r} must be float (N, C, H, W), "
+                                 f"got {o.type} {o.shape}")
+        c = o.shape[1]
+        if not isinstance(c, int) or c < 2:
+            raise InputFileError(f"{path}: output {o.name!r} must have a fixed class count >= 2, got {c!r}")
+        return _ModelIO(i.name, o.name, int(c))
+
+    @property
+    def n_classes(self) -> int:
+        """Number of classes the model predicts."""
+        return self._io.n_classes
+
+    def __repr__(self) -> str:
+        return f"Segmenter(model={str(self.path)!r}, classes={self.n_classes}, max_side={self.max_side})"
+
+    # ------------------------------------------------------------------ running
+    def __call__(self, frames: Any, *, return_proba: bool = False,
+                 progress: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Label frames.
+
+        Parameters
+        ----------
+        frames : array-like, shape (N, H, W) or (H, W)
+            uint8, uint16 (10-12 bits stored are fine: each frame is
+            normalized on its own) or float.
+        return_proba : bool
+            Also return the per-class probabilities.
+        progress : bool
+            Show a progress bar over the batches.
+
+        Returns
+        -------
+        labels : ndarray of uint8, shape (N, H, W) (or (H, W) for one frame)
+        proba : ndarray of float32, shape (N, C, H, W), only with ``return_proba``
+        """
+        x = np.asarray(frames)
+        single = x.ndim == 2
+        if single:
+            x = x[None]
+        if x.ndim != 3 or x.shape[0] == 0 or min(x.shape[1:]) < 8:
+            raise ArgumentError(f"frames: expected (N, H, W) or (H, W) with H, W >= 8, got shape {x.shape}")
+        if not (np.issubdtype(x.dtype, np.integer) or np.issubdtype(x.dtype, np.floating)
+                or x.dtype == bool):
+            raise ArgumentError(f"frames: expected integer or float pixels, got dtype {x.dtype}")
+        n, h, w = x.shape
+        labels = np.empty((n, h, w), np.uint8)
+        proba = np.empty((n, self.n_classes, h, w), np.float32) if return_proba else None
+        starts = range(0, n, self.batch_size)
+        if progress:
+            from tqdm.auto import tqdm
+
+            starts = tqdm(starts, desc="segment", unit="batch")
+        for s in starts:
+            p = self._run_batch(x[s:s + self.batch_size])
+            labels[s:s + len(p)] = p.argmax(axis=1)
+            if proba is not None:
+                proba[s:s + len(p)] = p
+        if single:
+            labels = labels[0]
+            proba = proba[0] if proba is not None else None
+        return (labels, proba) if return_proba else labels
+
+    def _run_batch(self, frames: np.ndarray) -> np.ndarray:
+        n, h, w = frames.shape
+        z = normalize_frames(frames)
+        f = 1.0
+        if self.max_side and max(h, w) > self.max_side:
+            f = self.max_side / max(h, w)
+            hs, ws = max(16, round(h * f)), max(16, round(w * f))
+            z = np.stack([cv2.resize(im, (ws, hs), interpolation=cv2.INTER_AREA) for im in z])
+        hh, ww = z.shape[1:]
+        ph, pw = (-hh) % _MULTIPLE, (-ww) % _MULTIPLE
+        if ph or pw:
+            mode = "reflect" if min(hh, ww) > max(ph, pw) else "edge"
+            z = np.pad(z, ((0, 0), (0, ph), (0, pw)), mode=mode)
+        logits = self._session.run([self._io.output], {self._io.input: z[:, None]})[0]
+        logits = logits[:, :, :hh, :ww]
+        e = np.exp(logits - logits.max(axis=1, keepdims=True))
+        p = (e / e.sum(axis=1, keepdims=True)).astype(np.float32)
+        if f != 1.0:
+            p = np.stack([np.stack([cv2.resize(c, (w, h), interpolation=cv2.INTER_LINEAR) for c in fr])
+                          for fr in p])
+        return p
+
+
+#: Overlay colours (RGB) of the classes 1..4: vessel red, catheter green, balloon blue, lead yellow.
+CLASS_COLOURS = np.array([[0, 0, 0], [230, 40, 40], [40, 200, 60], [60, 110, 255], [250, 210, 0]], np.uint8)
+
+
+def overlay_labels(frame: np.ndarray, labels: np.ndarray, alpha: float = 0.45,
+                   truth: np.ndarray | None = None) -> np.ndarray:
+    """RGB picture of a frame with its label map blended in (and a truth outline, if given).
+
+    Parameters
+    ----------
+    frame : ndarray (H, W)
+        Any dtype; shown with the same normalization the model sees.
+    labels : ndarray (H, W) of int
+        Class per pixel (0..4).
+    alpha : float
+        Opacity of the class colours.
+    truth : ndarray (H, W) of bool, optional
+        A reference vessel mask drawn as a white outline.
+
+    Returns
+    -------
+    ndarray of uint8, shape (H, W, 3)
+    """
+    frame, labels = np.asarray(frame), np.asarray(labels)
+    if frame.ndim != 2 or labels.shape != frame.shape:
+        raise ArgumentError(f"frame/labels: expected two (H, W) arrays of one shape, got {frame.shape} "
+                            f"and {labels.shape}")
+    g = np.clip((normalize_frames(frame[None])[0] + 1.0) * 127.5, 0, 255).astype(np.uint8)
+    rgb = np.repeat(g[..., None], 3, axis=2)
+    lab = np.clip(labels.astype(np.intp), 0, len(CLASS_COLOURS) - 1)
+    m = lab > 0
+    rgb[m] = ((1 - alpha) * rgb[m] + alpha * CLASS_COLOURS[lab[m]]).astype(np.uint8)
+    if truth is not None:
+        t = np.asarray(truth, bool).astype(np.uint8)
+        edge = cv2.morphologyEx(t, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+        rgb[edge] = 255
+    return rgb
