@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from .model import build_model
+from .quantize import quantize_int8, sample_inputs
 
 
 def load_checkpoint(path: str | os.PathLike) -> torch.nn.Module:
@@ -33,19 +34,6 @@ def load_checkpoint(path: str | os.PathLike) -> torch.nn.Module:
     model = build_model(ck["arch"], tuple(ck["widths"]))
     model.load_state_dict(ck["model"])
     return model.eval()
-
-
-def sample_inputs(n: int = 4, seed: int = 0) -> list[np.ndarray]:
-    """Normalized phantom frames (512 and 304 px) used to check and calibrate an export."""
-    from vesselcad.phantom import render
-    from vesselcad.segment import normalize_frames
-
-    out = []
-    for k in range(n):
-        rows = 512 if k % 2 == 0 else 304
-        fr = render(seed + k, rows=rows, cols=rows, n_frames=1).frames
-        out.append(normalize_frames(fr)[:, None].astype(np.float32))
-    return out
 
 
 def export(model: torch.nn.Module, path: str | os.PathLike, *, atol: float = 1e-4) -> dict[str, float]:
@@ -83,21 +71,6 @@ def export(model: torch.nn.Module, path: str | os.PathLike, *, atol: float = 1e-
     finally:
         tmp.unlink(missing_ok=True)
     return {"max_abs_diff": worst, "size_mb": path.stat().st_size / 1e6}
-
-
-def quantize_int8(src: str | os.PathLike, dst: str | os.PathLike) -> None:
-    """Static int8 quantization (QDQ, per-channel weights) calibrated on a few frames."""
-    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
-
-    class Reader(CalibrationDataReader):
-        def __init__(self):
-            self.items = iter([{"image": x} for x in sample_inputs(8, seed=100)])
-
-        def get_next(self):
-            return next(self.items, None)
-
-    quantize_static(str(src), str(dst), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
-                    activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,6 +25,7 @@ from .io import XARun, load_run, save_run
 from .matching import BranchPair, GraphMatch, LandmarkMatch, Unmatched, match_graphs, plot_graph_match
 from .metrics import centreline_error, reprojection_error
 from .phase import PhaseError, PhaseMatch, match_phase
+from .segment import Segmenter
 from .tree import TreeBranch, VesselTree
 
 __version__ = "0.1.0"
@@ -48,6 +49,7 @@ __all__ = [
     "XARun",
     "load_run",
     "save_run",
+    "Segmenter",
     "match_phase",
     "PhaseMatch",
     "PhaseError",

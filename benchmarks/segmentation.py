@@ -1,0 +1,127 @@
+"""Segmentation benchmark: gated U-Net vs plain U-Net (fp32 and int8), phantom and real images.
+
+Prints one table:
+
+* per-class IoU and mIoU on the fixed held-out phantom test set (120 phantoms
+  never trained on x 2 frames = 240 frames, 512 x 512);
+* vessel Dice on the real validation split (10 CIMAT angiograms never trained on);
+* milliseconds per 512 x 512 frame with onnxruntime on ``--threads`` CPU threads;
+
+next to the goals of issue 12 and, clearly apart, the paper's mIoU figures
+(measured on the paper's own real data, not comparable number for number).
+``--render DIR`` also writes the overlay pictures used in docs/.
+
+Usage::
+
+    python benchmarks/segmentation.py [--threads 2] [--json out.json] [--render docs/img]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from segmentation_onnx.data import render_test_set
+from segmentation_onnx.evaluate import evaluate_phantom, evaluate_real, time_inference
+from vesselcad.segment import bundled_model_path
+
+GOALS = {"iou_vessel": 0.85, "iou_catheter": 0.75, "iou_balloon": 0.80, "dice_mean": 0.80,
+         "ms_per_512_frame": 80.0}
+PAPER = "paper (own real data, mIoU %): U-Net 67.45 / CMU-Net 68.17 / gated U-Net 70.33"
+
+
+def render_pictures(out: Path, model: Path) -> list[Path]:
+    """Overlays on the real validation images (with the manual mask outlined) and on ARCADE frames."""
+    import cv2
+
+    from segmentation_onnx.data import REAL_VAL_IDS, find_real_dir, load_real
+    from vesselcad.io.atomic import atomic_path
+    from vesselcad.segment import Segmenter, overlay_labels
+
+    seg = Segmenter(model)
+    out.mkdir(parents=True, exist_ok=True)
+    imgs, masks = load_real(REAL_VAL_IDS[:6])
+    tiles = [overlay_labels(im, seg(im), truth=gt) for im, gt in zip(imgs, masks, strict=True)]
+    grid = np.vstack([np.hstack(tiles[0:3]), np.hstack(tiles[3:6])])
+    paths = []
+    p = out / "seg_real_validation.png"
+    with atomic_path(p) as tmp:
+        cv2.imwrite(str(tmp.with_suffix(".png")), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
+        tmp.with_suffix(".png").replace(tmp)
+    paths.append(p)
+    unl = sorted((find_real_dir() / "unlabelled").glob("arcade_*.png"))[:6]
+    if unl:
+        tiles = []
+        for f in unl:
+            im = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            ov = overlay_labels(im, seg(im))
+            tiles.append(cv2.resize(np.hstack([np.repeat(im[..., None], 3, 2), ov]), None, fx=0.5, fy=0.5))
+        grid = np.vstack([np.hstack(tiles[i:i + 2]) for i in range(0, len(tiles) - 1, 2)])
+        p = out / "seg_arcade_unlabelled.png"
+        with atomic_path(p) as tmp:
+            cv2.imwrite(str(tmp.with_suffix(".png")), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
+            tmp.with_suffix(".png").replace(tmp)
+        paths.append(p)
+    return paths
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--phantoms", type=int, default=120)
+    ap.add_argument("--cache", default=str(Path.home() / ".cache/vesselcad/seg_test_set.npz"))
+    ap.add_argument("--no-int8", action="store_true")
+    ap.add_argument("--json")
+    ap.add_argument("--render", help="write overlay pictures into this folder")
+    a = ap.parse_args()
+
+    t0 = time.time()
+    frames, labels = render_test_set(a.phantoms, cache=a.cache)
+    print(f"phantom test set: {len(frames)} frames ({time.time() - t0:.0f} s)")
+    models = {"gated U-Net fp32": bundled_model_path("gated_unet.onnx"),
+              "plain U-Net fp32": bundled_model_path("unet.onnx")}
+    tmpdir = Path(tempfile.mkdtemp())
+    if not a.no_int8:
+        from segmentation_onnx.quantize import quantize_int8
+
+        for name, src in list(models.items()):
+            dst = tmpdir / (src.stem + "_int8.onnx")
+            quantize_int8(src, dst)
+            models[name.replace("fp32", "int8")] = dst
+    rows = {}
+    for name, path in models.items():
+        r = evaluate_phantom(path, frames, labels, threads=a.threads)
+        r.update(evaluate_real(path, threads=a.threads))
+        r["ms_per_512_frame"] = time_inference(path, threads=a.threads)
+        r["size_mb"] = path.stat().st_size / 1e6
+        rows[name] = r
+    cols = [("iou_vessel", "vessel IoU"), ("iou_catheter", "catheter IoU"), ("iou_balloon", "balloon IoU"),
+            ("iou_lead", "lead IoU"), ("miou", "mIoU"), ("dice_mean", "real Dice"),
+            ("ms_per_512_frame", f"ms/512² ({a.threads} thr)"), ("size_mb", "MB")]
+    head = "| model | " + " | ".join(c[1] for c in cols) + " |"
+    print(head)
+    print("|" + "---|" * (len(cols) + 1))
+    for name, r in rows.items():
+        cells = [f"{r[k]:.1f}" if k in ("ms_per_512_frame", "size_mb") else f"{r[k]:.3f}" for k, _ in cols]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    goal = [f"≥ {GOALS[k]}" if k in GOALS and k != "ms_per_512_frame" else
+            (f"≤ {GOALS[k]:.0f}" if k in GOALS else "") for k, _ in cols]
+    print("| goal | " + " | ".join(goal) + " |")
+    print(PAPER)
+    print("real Dice per image (gated fp32):", rows["gated U-Net fp32"]["dice_per_image"])
+    print(f"total {time.time() - t0:.0f} s")
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+    if a.render:
+        for p in render_pictures(Path(a.render), models["gated U-Net fp32"]):
+            print("wrote", p)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,203 @@
+"""Segmentation: the bundled ONNX model run with onnxruntime (vc.Segmenter), its input handling,
+scores against the phantom's ground truth and real manual masks, and torch/ONNX parity."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import vesselcad as vc
+from vesselcad.errors import ArgumentError, InputFileError
+from vesselcad.segment import CLASSES, normalize_frames, overlay_labels
+
+REAL = Path(__file__).parent / "data" / "xca-real-val"
+REAL_IDS = (4, 8, 12, 16, 20, 24, 28, 32, 36, 40)
+
+
+@pytest.fixture(scope="module")
+def seg() -> vc.Segmenter:
+    return vc.Segmenter(threads=2)
+
+
+@pytest.fixture(scope="module")
+def phantom_frames():
+    # The first three phantoms of the held-out test set (never trained on): the most opacified
+    # frame and one random frame of each.
+    from segmentation_onnx.data import TEST_SEED0, _test_one
+
+    frames, labels = [], []
+    for s in range(TEST_SEED0, TEST_SEED0 + 3):
+        f, lab = _test_one(s)
+        frames += f
+        labels += lab
+    return np.stack(frames), np.stack(labels)
+
+
+def test_bundled_model_runs_without_torch():
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "import numpy as np, vesselcad as vc\n"
+        "seg = vc.Segmenter(threads=1)\n"
+        "lab = seg(np.full((2, 64, 80), 100, np.uint8))\n"
+        "assert lab.shape == (2, 64, 80) and lab.dtype == np.uint8, (lab.shape, lab.dtype)\n"
+        "assert seg.n_classes == 5\n"
+        "print('ok')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+def test_phantom_scores_against_ground_truth(seg, phantom_frames):
+    from segmentation_onnx.evaluate import iou_per_class
+
+    frames, labels = phantom_frames
+    pred = seg(frames)
+    iou = dict(zip(CLASSES, iou_per_class(pred, labels), strict=True))
+    # Measured on the whole 240-frame test set: vessel 0.73, catheter 0.60, lead 0.92 (see
+    # docs/results.md); issue 12's goal of 0.8 on these frames is not reached yet.
+    assert iou["background"] > 0.97
+    assert iou["vessel"] > 0.5
+    assert iou["catheter"] > 0.5
+    # the catheter is found mostly as catheter; the contrast-filled catheter taken for vessel is the
+    # model's known weakness (22% of catheter pixels on these frames)
+    cath = labels == 2
+    assert (pred[cath] == 2).mean() > 0.6
+    assert (pred[cath] == 1).mean() < 0.3
+
+
+def test_real_validation_dice(seg):
+    dices = []
+    for i in REAL_IDS:
+        im = cv2.imread(str(REAL / f"{i}.png"), cv2.IMREAD_GRAYSCALE)
+        gt = cv2.imread(str(REAL / f"{i}_gt.png"), cv2.IMREAD_GRAYSCALE) > 127
+        p = seg(im) == 1
+        dices.append(2 * (p & gt).sum() / (p.sum() + gt.sum()))
+    # real angiograms the model never saw, manual masks: measured mean 0.735 (goal 0.80)
+    assert np.mean(dices) > 0.70
+    assert min(dices) > 0.6
+
+
+def test_any_size_and_dtype(seg, phantom_frames):
+    frames, _ = phantom_frames
+    f8 = frames[0]
+    lab8 = seg(f8)
+    assert lab8.shape == f8.shape and lab8.dtype == np.uint8
+    # 12 bits stored in uint16: per-frame normalization makes the scale irrelevant
+    f12 = f8.astype(np.uint16) * 16 + 7
+    assert (seg(f12) == lab8).mean() > 0.995
+    # odd sizes come back at their own size
+    odd = f8[:301, :299]
+    lab_odd, proba = seg(odd[None], return_proba=True)
+    assert lab_odd.shape == (1, 301, 299) and proba.shape == (1, 5, 301, 299)
+    np.testing.assert_allclose(proba.sum(axis=1), 1.0, atol=1e-5)
+    np.testing.assert_array_equal(proba.argmax(axis=1), lab_odd)
+    # a 1024 x 1024 frame is run at max_side and scaled back; vessels still where they were
+    big = cv2.resize(f8, (1024, 1024), interpolation=cv2.INTER_LINEAR)
+    lab_big = seg(big)
+    assert lab_big.shape == (1024, 1024)
+    small = cv2.resize(lab_big, (512, 512), interpolation=cv2.INTER_NEAREST)
+    v8, vb = lab8 == 1, small == 1
+    if v8.sum() > 500:
+        assert (v8 & vb).sum() / (v8 | vb).sum() > 0.6
+    # batching does not change results
+    seg1 = vc.Segmenter(threads=2, batch_size=1)
+    np.testing.assert_array_equal(seg1(frames[:3]), seg(frames[:3]))
+
+
+def test_normalize_frames_is_a_robust_linear_map():
+    ramp = np.tile(np.arange(1000, dtype=np.float32), (100, 1))  # uniform 0..999
+    z = normalize_frames(ramp[None])[0]
+    lo, hi = np.percentile(ramp[:, ::1], [1, 99])
+    # the 1st and 99th percentiles go to -1 and +1, linearly in between
+    np.testing.assert_allclose(z[0, [10, 500, 989]], (np.array([10, 500, 989]) - lo) / (hi - lo) * 2 - 1,
+                               atol=0.03)
+    # a black border (shutter, intensifier corners) is left out of the percentiles
+    framed = np.zeros((100, 1400), np.float32)
+    framed[:, 400:] = ramp
+    zf = normalize_frames(framed[None])[0]
+    np.testing.assert_allclose(zf[:, 400:], z, atol=0.03)
+    # constant frame: no division by zero
+    assert np.isfinite(normalize_frames(np.full((1, 20, 20), 7, np.uint16))).all()
+
+
+def test_overlay_picture(phantom_frames):
+    frames, labels = phantom_frames
+    rgb = overlay_labels(frames[0], labels[0], truth=labels[0] == 1)
+    assert rgb.shape == (*frames[0].shape, 3) and rgb.dtype == np.uint8
+    vessel = labels[0] == 1
+    if vessel.any():  # vessel pixels are tinted red
+        r, g = rgb[..., 0].astype(int), rgb[..., 1].astype(int)
+        assert (r[vessel] - g[vessel]).mean() > 20
+
+
+def test_bad_input_is_rejected(tmp_path, seg):
+    with pytest.raises(InputFileError, match="nope.onnx"):
+        vc.Segmenter(tmp_path / "nope.onnx")
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    with pytest.raises(InputFileError, match="junk.onnx"):
+        vc.Segmenter(junk)
+    with pytest.raises(ArgumentError, match="frames"):
+        seg(np.zeros((1, 1, 32, 32)))
+    with pytest.raises(ArgumentError, match="frames"):
+        seg(np.zeros((2, 32, 32), complex))
+    with pytest.raises(ArgumentError, match="batch_size"):
+        vc.Segmenter(batch_size=0)
+
+
+def test_model_with_wrong_outputs_is_rejected(tmp_path):
+    torch = pytest.importorskip("torch")
+
+    class OneChannel(torch.nn.Module):
+        def forward(self, x):
+            return x * 2.0
+
+    p = tmp_path / "one_class.onnx"
+    torch.onnx.export(OneChannel(), torch.zeros(1, 1, 16, 16), str(p), input_names=["image"],
+                      output_names=["logits"], dynamo=False)
+    with pytest.raises(InputFileError, match="class count"):
+        vc.Segmenter(p)
+
+
+def test_gate_and_torch_onnx_parity(tmp_path):
+    torch = pytest.importorskip("torch")
+    from segmentation_onnx.export import export
+    from segmentation_onnx.model import Gate, build_model
+
+    # the gate is f' = sigmoid(W f + b) * f with W a 1x1 convolution
+    g = Gate(2)
+    with torch.no_grad():
+        g.proj.weight[:] = torch.tensor([[1.0, 0.0], [2.0, -1.0]])[:, :, None, None]
+        g.proj.bias[:] = torch.tensor([0.5, 0.0])
+    f = torch.tensor([1.0, 3.0]).reshape(1, 2, 1, 1)
+    s = torch.sigmoid(torch.tensor([1.0 + 0.5, 2.0 - 3.0]))
+    torch.testing.assert_close(g(f).flatten(), s * torch.tensor([1.0, 3.0]))
+    for arch in ("gated", "plain"):
+        torch.manual_seed(0)
+        m = build_model(arch, (4, 8, 8, 8, 8))
+        info = export(m, tmp_path / f"{arch}.onnx")  # raises if onnxruntime and torch disagree
+        assert info["max_abs_diff"] <= 1e-4
+        lab = vc.Segmenter(tmp_path / f"{arch}.onnx")(np.zeros((37, 45), np.uint8))
+        assert lab.shape == (37, 45)
+
+
+def test_partial_label_loss():
+    torch = pytest.importorskip("torch")
+    from segmentation_onnx.data import NOT_VESSEL
+    from segmentation_onnx.train import seg_loss
+
+    # uniform logits: p = 0.2 for each class; a real "not vessel" pixel costs -log(0.8) plus Dice
+    logits = torch.zeros(1, 5, 1, 2)
+    target = torch.tensor([[[NOT_VESSEL, NOT_VESSEL]]])
+    assert abs(float(seg_loss(logits, target)) - float(-np.log(0.8))) < 1e-5
+    # a confident vessel prediction on a "not vessel" pixel is penalised, a confident background one is not
+    good = torch.full((1, 5, 1, 2), -10.0)
+    good[:, 0] = 10.0
+    bad = torch.full((1, 5, 1, 2), -10.0)
+    bad[:, 1] = 10.0
+    assert float(seg_loss(good, target)) < 1e-3 < 10 < float(seg_loss(bad, target))
