@@ -123,9 +123,14 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
 
     assert main(["demo", "--out", str(tmp_path), "--frames", "12", "--anatomy", "cs", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
-    for name in ("run_a.dcm", "run_b.dcm", "truth.json", "preview.png", "phase.png", "demo.json"):
+    for name in ("run_a.dcm", "run_b.dcm", "truth.json", "preview.png", "phase.png", "demo.json",
+                 "segmentation.png"):
         assert (tmp_path / name).is_file(), name
     phase = summary["phase"]
     assert phase["objects"] == ["balloon"]
+    # the bundled model ran on the chosen pair and was scored against the phantom's truth
+    ious = summary["segmentation_iou_chosen_frames"]
+    assert set(ious) <= {"vessel", "catheter", "balloon", "lead"} and "catheter" in ious
+    assert all(0.0 <= v <= 1.0 for v in ious.values())
     assert 0 <= phase["frame_a"] < 12 and 0 <= phase["frame_b"] < 12
     assert phase["error_mm"] <= summary["phase_error_mm_frame_0_0"]
