@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from .data import NOT_VESSEL, REAL_VAL_IDS, Pool, Sampler, load_real, render_pool
+from .evaluate import iou_per_class
 from .model import DEFAULT_WIDTHS, N_CLASSES, build_model
 
 #: Per-class weights of the cross-entropy (thin devices and balloons are rare).
@@ -82,16 +83,6 @@ def predict(model: torch.nn.Module, frames: list[np.ndarray] | np.ndarray, devic
         logits = model(torch.from_numpy(z[:, None]).to(device))
         out.append(logits.argmax(1)[:, :h, :w].cpu().numpy().astype(np.uint8))
     return np.concatenate(out)
-
-
-def iou_per_class(pred: np.ndarray, truth: np.ndarray, n: int = N_CLASSES) -> np.ndarray:
-    """Dataset-level IoU of each class (NaN where a class is in neither)."""
-    idx = truth.astype(np.int64).ravel() * n + pred.astype(np.int64).ravel()
-    cm = np.bincount(idx, minlength=n * n).reshape(n, n)
-    tp = np.diag(cm).astype(float)
-    den = cm.sum(0) + cm.sum(1) - tp
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, tp / den, np.nan)
 
 
 def dice(pred: np.ndarray, truth: np.ndarray) -> float:
