@@ -35,12 +35,20 @@ GOALS = {"iou_vessel": 0.85, "iou_catheter": 0.75, "iou_balloon": 0.80, "dice_me
 PAPER = "paper (own real data, mIoU %): U-Net 67.45 / CMU-Net 68.17 / gated U-Net 70.33"
 
 
+def _write_png(path: Path, rgb: np.ndarray) -> Path:
+    import cv2
+
+    from vesselcad.io.atomic import atomic_write_bytes
+
+    atomic_write_bytes(path, cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))[1].tobytes())
+    return path
+
+
 def render_pictures(out: Path, model: Path) -> list[Path]:
     """Overlays on the real validation images (with the manual mask outlined) and on ARCADE frames."""
     import cv2
 
     from segmentation_onnx.data import REAL_VAL_IDS, find_real_dir, load_real
-    from vesselcad.io.atomic import atomic_path
     from vesselcad.segment import Segmenter, overlay_labels
 
     seg = Segmenter(model)
@@ -49,11 +57,7 @@ def render_pictures(out: Path, model: Path) -> list[Path]:
     tiles = [overlay_labels(im, seg(im), truth=gt) for im, gt in zip(imgs, masks, strict=True)]
     grid = np.vstack([np.hstack(tiles[0:3]), np.hstack(tiles[3:6])])
     paths = []
-    p = out / "seg_real_validation.png"
-    with atomic_path(p) as tmp:
-        cv2.imwrite(str(tmp.with_suffix(".png")), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
-        tmp.with_suffix(".png").replace(tmp)
-    paths.append(p)
+    paths.append(_write_png(out / "seg_real_validation.png", grid))
     unl = sorted((find_real_dir() / "unlabelled").glob("arcade_*.png"))[:6]
     if unl:
         tiles = []
@@ -62,11 +66,7 @@ def render_pictures(out: Path, model: Path) -> list[Path]:
             ov = overlay_labels(im, seg(im))
             tiles.append(cv2.resize(np.hstack([np.repeat(im[..., None], 3, 2), ov]), None, fx=0.5, fy=0.5))
         grid = np.vstack([np.hstack(tiles[i:i + 2]) for i in range(0, len(tiles) - 1, 2)])
-        p = out / "seg_arcade_unlabelled.png"
-        with atomic_path(p) as tmp:
-            cv2.imwrite(str(tmp.with_suffix(".png")), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
-            tmp.with_suffix(".png").replace(tmp)
-        paths.append(p)
+        paths.append(_write_png(out / "seg_arcade_unlabelled.png", grid))
     return paths
 
 
