@@ -10,14 +10,10 @@
   (``xca-real/train``). :data:`REAL_VAL_IDS` (10 of them) are never trained on.
   Their catheters are not labelled, so on real images the loss only asks
   "vessel or not" (target code :data:`NOT_VESSEL`).
-* **Augmentation** (:class:`Sampler`): gamma, extra vessel opacification,
-  blur, noise, low-frequency shading, black circular image-intensifier or
-  rectangular shutter borders on the raw frame; then the same per-frame
-  normalization as inference (:func:`vesselcad.segment.normalize_frames`); then
-  one affine warp (log-uniform scale 0.55-1.9, any rotation, flips) to the crop,
-  centred on a foreground pixel most of the time.
+* **Augmentation** is done batch-wise on the training device by
+  :class:`segmentation_onnx.torch_aug.BatchAugmenter`.
 
-No torch in this module's import path except :class:`Sampler`'s base class.
+No torch in this module.
 """
 
 from __future__ import annotations
@@ -30,10 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vesselcad.segment import normalize_frames
-
 __all__ = ["REAL_VAL_IDS", "NOT_VESSEL", "IGNORE", "Pool", "find_real_dir", "load_real", "render_pool",
-           "render_test_set", "Sampler"]
+           "render_test_set"]
 
 #: CIMAT image ids kept out of training (real validation split; fixed, spread over the set).
 REAL_VAL_IDS: tuple[int, ...] = (4, 8, 12, 16, 20, 24, 28, 32, 36, 40)
@@ -180,133 +174,6 @@ def render_test_set(n_phantoms: int = 120, workers: int | None = None,
         Path(cache).parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(cache, frames=frames, labels=labels)
     return frames, labels
-
-
-# ---------------------------------------------------------------- augmentation
-def _raw_augment(img: np.ndarray, lab: np.ndarray | None, bits: int, rng: np.random.Generator,
-                 phantom: bool) -> np.ndarray:
-    """Photometric augmentation of one raw frame; returns float32 in ~[0, 1]."""
-    x = img.astype(np.float32) / float(2**bits - 1)
-    h, w = x.shape
-    if phantom and lab is not None and rng.uniform() < 0.6:
-        # more (or less) iodine: darken the opacified vessels by a random factor
-        v = cv2.GaussianBlur((lab == 1).astype(np.float32), (0, 0), 0.8)
-        x *= 1.0 - rng.uniform(0.0, 0.45) * v
-    if rng.uniform() < 0.5:  # low-frequency shading (heel effect, thickness), built at 32 x 32
-        gy, gx = np.mgrid[0:32, 0:32].astype(np.float32) / 31.0 - 0.5
-        a = rng.normal(0, 0.25, 3)
-        shade = np.exp(a[0] * gx + a[1] * gy + a[2] * gx**2).astype(np.float32)
-        x *= cv2.resize(shade, (w, h), interpolation=cv2.INTER_LINEAR)
-    x = cv2.pow(np.clip(x, 1e-4, None), float(rng.uniform(0.6, 1.6)))
-    if rng.uniform() < 0.4:
-        x = cv2.GaussianBlur(x, (0, 0), rng.uniform(0.3, 1.3))
-    if rng.uniform() < 0.6:
-        noise = np.empty_like(x)
-        cv2.setRNGSeed(int(rng.integers(2**31)))
-        cv2.randn(noise, 0.0, float(rng.uniform(0.005, 0.04)))
-        x = x + noise * cv2.sqrt(np.clip(x, 0, None))
-    u = rng.uniform()
-    if u < 0.25:  # image-intensifier circle with black corners
-        cy, cx = rng.uniform(0.45, 0.55, 2) * (h, w)
-        r = rng.uniform(0.5, 0.72) * min(h, w)
-        yy, xx = np.ogrid[0:h, 0:w]
-        x[(yy - cy) ** 2 + (xx - cx) ** 2 > r * r] = rng.uniform(0.0, 0.03)
-    elif u < 0.45:  # shutter / collimator blades
-        for side in range(4):
-            if rng.uniform() < 0.5:
-                t = int(rng.uniform(0.01, 0.12) * (h if side < 2 else w))
-                val = rng.uniform(0.0, 0.05) if rng.uniform() < 0.7 else rng.uniform(0.8, 1.0)
-                if side == 0:
-                    x[:t] = val
-                elif side == 1:
-                    x[h - t:] = val
-                elif side == 2:
-                    x[:, :t] = val
-                else:
-                    x[:, w - t:] = val
-    return x
-
-
-def _warp(x: np.ndarray, target: np.ndarray, crop: int, rng: np.random.Generator,
-          fg: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """One random affine warp of the normalized image and its target into a ``crop`` square."""
-    h, w = x.shape
-    s = float(np.exp(rng.uniform(np.log(0.55), np.log(1.9))))
-    ang = rng.uniform(0, 2 * np.pi)
-    if fg is not None and len(fg) and rng.uniform() < 0.75:
-        cy, cx = fg[rng.integers(len(fg))] + rng.normal(0, 0.1 * crop / s, 2)
-    else:
-        cy, cx = rng.uniform(0, h), rng.uniform(0, w)
-    c, sn = np.cos(ang) * s, np.sin(ang) * s
-    fx = -1.0 if rng.uniform() < 0.5 else 1.0
-    m = np.array([[c * fx, -sn, 0.0], [sn * fx, c, 0.0]])
-    m[:, 2] = np.array([crop / 2, crop / 2]) - m[:, :2] @ np.array([cx, cy])
-    xi = cv2.warpAffine(x, m, (crop, crop), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
-    ti = cv2.warpAffine(target, m, (crop, crop), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT_101)
-    return xi, ti
-
-
-def make_sample(img: np.ndarray, lab: np.ndarray, bits: int, phantom: bool, crop: int,
-                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """One augmented training crop: normalized image (float32) and target (uint8).
-
-    Target codes: phantom 0..4 (:data:`vesselcad.segment.CLASSES`); real 1 vessel,
-    :data:`NOT_VESSEL` anything else.
-    """
-    x = _raw_augment(img, lab if phantom else None, bits, rng, phantom)
-    z = normalize_frames(x[None])[0]
-    target = lab.astype(np.uint8) if phantom else np.where(lab, 1, NOT_VESSEL).astype(np.uint8)
-    fg_mask = (target >= 1) & (target <= 4)
-    ys, xs = np.nonzero(fg_mask[::4, ::4])
-    fg = np.stack([ys, xs], 1) * 4 if len(ys) else None
-    return _warp(z, target, crop, rng, fg)
-
-
-try:  # torch is only needed to train
-    from torch.utils.data import Dataset as _Dataset
-except ImportError:  # pragma: no cover
-    _Dataset = object  # type: ignore[assignment,misc]
-
-
-class Sampler(_Dataset):  # type: ignore[misc]
-    """Map-style dataset of augmented crops; item ``i`` is deterministic for a given seed.
-
-    Parameters
-    ----------
-    pool : Pool
-        Phantom frames.
-    real_images, real_masks : lists
-        Real training images and vessel masks.
-    length : int
-        Items per epoch (training draws from it with a seeded sampler).
-    crop : int
-        Crop side (multiple of 16).
-    real_fraction : float
-        Probability that an item is a real image.
-    seed : int
-        Base seed.
-    """
-
-    def __init__(self, pool: Pool, real_images: list[np.ndarray], real_masks: list[np.ndarray], *,
-                 length: int, crop: int = 256, real_fraction: float = 0.35, seed: int = 0):
-        self.pool, self.real_images, self.real_masks = pool, real_images, real_masks
-        self.length, self.crop, self.real_fraction, self.seed = int(length), int(crop), real_fraction, seed
-
-    def __len__(self) -> int:
-        return self.length
-
-    def __getitem__(self, i: int):
-        import torch
-
-        rng = np.random.default_rng([self.seed, int(i)])
-        if self.real_images and rng.uniform() < self.real_fraction:
-            k = int(rng.integers(len(self.real_images)))
-            x, t = make_sample(self.real_images[k], self.real_masks[k], 8, False, self.crop, rng)
-        else:
-            k = int(rng.integers(len(self.pool.frames)))
-            x, t = make_sample(self.pool.frames[k], self.pool.labels[k], self.pool.bits[k], True,
-                               self.crop, rng)
-        return torch.from_numpy(x[None].copy()), torch.from_numpy(t.astype(np.int64))
 
 
 def main(argv: list[str] | None = None) -> int:

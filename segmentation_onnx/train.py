@@ -26,9 +26,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .data import NOT_VESSEL, REAL_VAL_IDS, Pool, Sampler, load_real, render_pool
+from .data import NOT_VESSEL, REAL_VAL_IDS, Pool, load_real, render_pool
 from .evaluate import iou_per_class
 from .model import DEFAULT_WIDTHS, N_CLASSES, build_model
+from .torch_aug import BatchAugmenter
 
 #: Per-class weights of the cross-entropy (thin devices and balloons are rare).
 CLASS_WEIGHTS = (1.0, 2.0, 2.0, 3.0, 2.0)
@@ -119,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-real", action="store_true", help="phantom only")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    ap.add_argument("--workers", type=int, default=2, help="data loader processes")
+    ap.add_argument("--workers", type=int, default=None, help="processes rendering the pool (default: all)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--val-every", type=int, default=500)
     ap.add_argument("--ckpt-every", type=int, default=500)
@@ -161,21 +162,18 @@ def main(argv: list[str] | None = None) -> int:
     if a.pool and Path(a.pool).is_file():
         pool = Pool.load(a.pool)
     else:
-        pool = render_pool(range(a.pool_phantoms), workers=a.workers or None, progress=not a.quiet)
+        pool = render_pool(range(a.pool_phantoms), workers=a.workers, progress=not a.quiet)
         if a.pool:
             pool.save(a.pool)
     val_pool = render_pool(range(VAL_SEED0, VAL_SEED0 + 16), frames_per_seed=2, keep_empty=0.5,
-                           workers=a.workers or None, progress=False)
+                           workers=a.workers, progress=False)
     real_train_ids = [i for i in range(1, 41) if i not in REAL_VAL_IDS]
     real_imgs, real_masks = ([], []) if a.no_real else load_real(real_train_ids, a.real_dir)
     real_val = load_real(REAL_VAL_IDS, a.real_dir)
 
-    ds = Sampler(pool, real_imgs, real_masks, length=a.steps * a.batch, crop=a.crop,
-                 real_fraction=a.real_fraction, seed=a.seed)
-    idx = list(range(step * a.batch, a.steps * a.batch))
-    loader = torch.utils.data.DataLoader(ds, batch_size=a.batch, sampler=idx, num_workers=a.workers,
-                                         pin_memory=device.type == "cuda", drop_last=True,
-                                         persistent_workers=a.workers > 0)
+    # batches are drawn and augmented on the training device; a resumed run reseeds from its step
+    aug = BatchAugmenter(pool, real_imgs, real_masks, crop=a.crop, real_fraction=a.real_fraction,
+                         device=device, seed=a.seed * 1_000_003 + step)
     (out / "config.json").write_text(json.dumps({**vars(a), "widths": widths, "device": str(device),
                                                  "pool_frames": len(pool.frames),
                                                  "real_train_ids": real_train_ids,
@@ -198,10 +196,10 @@ def main(argv: list[str] | None = None) -> int:
 
     bar = tqdm(total=a.steps, initial=step, desc=f"train {a.arch}", unit="step", disable=a.quiet)
     model.train()
-    run_loss, n_loss = 0.0, 0
+    run_loss, n_loss = torch.zeros((), device=device), 0
     t_limit_start = time.time()  # the schedule's clock starts with the first step
-    for x, t in loader:
-        x, t = x.to(device, non_blocking=True), t.to(device, non_blocking=True)
+    while step < a.steps:
+        x, t = aug.batch(a.batch)
         for g in opt.param_groups:
             g["lr"] = learning_rate()
         loss = seg_loss(model(x), t)
@@ -209,19 +207,20 @@ def main(argv: list[str] | None = None) -> int:
         loss.backward()
         opt.step()
         step += 1
-        run_loss += float(loss.detach())
+        run_loss += loss.detach()
         n_loss += 1
         bar.update(1)
         last = step >= a.steps or (a.time_limit and time.time() - t_start > a.time_limit)
         if step % a.val_every == 0 or last:
             v = validate(model, device, real_val, val_pool)
-            log.writerow([step, round(run_loss / max(n_loss, 1), 5), f"{opt.param_groups[0]['lr']:.2e}",
+            mean_loss = float(run_loss) / max(n_loss, 1)
+            log.writerow([step, round(mean_loss, 5), f"{opt.param_groups[0]['lr']:.2e}",
                           round(time.time() - t_start, 1), round(v["real_dice"], 4),
                           round(v["phantom_miou"], 4)] + [round(v[f"iou_{k}"], 4) for k in range(1, 5)])
             logf.flush()
-            bar.set_postfix(loss=f"{run_loss / max(n_loss, 1):.3f}", real_dice=f"{v['real_dice']:.3f}",
+            bar.set_postfix(loss=f"{mean_loss:.3f}", real_dice=f"{v['real_dice']:.3f}",
                             miou=f"{v['phantom_miou']:.3f}")
-            run_loss, n_loss = 0.0, 0
+            run_loss, n_loss = torch.zeros((), device=device), 0
         if step % a.ckpt_every == 0 or last:
             save("last.pt")
         if last:

@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # Train the bundled models on a GPU machine (the run recorded in MODEL_CARD.md).
-# Renders one phantom pool, trains gated and plain U-Nets of two widths side by side
-# (each for at most $TRAIN_SECONDS), exports each to ONNX, and packs the results into
-# one $OUT/<run>.tgz per model. Every command here also runs on CPU (--device cpu), only slower.
+# Renders one phantom pool, trains the gated and the plain U-Net side by side on the one GPU
+# (each for at most $TRAIN_SECONDS; batches are augmented on the GPU, see torch_aug.py),
+# exports each to ONNX, and packs the results into one $OUT/<run>.tgz per model.
+# Every command here also runs on CPU (--device cpu), only slower.
 set -euo pipefail
 export PYTHONUNBUFFERED=1
 OUT=${OUT:-out}; RUNS=${RUNS:-/tmp/runs}; POOL=${POOL:-/tmp/pool.npz}
 PHANTOMS=${PHANTOMS:-700}; TRAIN_SECONDS=${TRAIN_SECONDS:-330}; STEPS=${STEPS:-20000}
-REAL=${REAL:-.data/xca-real}; CONFIGS=${CONFIGS:-"gated:16,32,64,128,192 plain:16,32,64,128,192 gated:8,16,32,64,128 plain:8,16,32,64,128"}
+REAL=${REAL:-.data/xca-real}; CONFIGS=${CONFIGS:-"gated:16,32,64,128,192 plain:16,32,64,128,192"}
 mkdir -p "$RUNS" "$OUT"
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
 t0=$(date +%s)
@@ -16,7 +17,8 @@ echo "pool: $(( $(date +%s) - t0 )) s"
 for cfg in $CONFIGS; do
   arch=${cfg%%:*}; widths=${cfg#*:}; name=${arch}_${widths%%,*}
   python3 -m segmentation_onnx.train --arch "$arch" --widths "$widths" --out "$RUNS/$name" --pool "$POOL" \
-    --steps "$STEPS" --workers "${WORKERS:-3}" --time-limit "$TRAIN_SECONDS" --real-dir "$REAL" --quiet \
+    --steps "$STEPS" --batch "${BATCH:-8}" --val-every "${VAL_EVERY:-500}" --time-limit "$TRAIN_SECONDS" \
+    --real-dir "$REAL" --quiet \
     ${INIT_DIR:+--init "$INIT_DIR/$name/weights.pt"} --real-fraction "${REAL_FRACTION:-0.35}" \
     > "$RUNS/$name.txt" 2>&1 &
 done
