@@ -79,13 +79,19 @@ class Pool:
     bits: list[int]
 
     def save(self, path: str | os.PathLike) -> None:
-        np.savez(path, frames=np.array(self.frames, dtype=object), labels=np.array(self.labels, dtype=object),
-                 bits=np.array(self.bits))
+        """Write an ``.npz`` (stacked uint16 frames when all frames share one shape: fast to load)."""
+        if len({f.shape for f in self.frames}) == 1:
+            frames, labels = np.stack(self.frames).astype(np.uint16), np.stack(self.labels)
+        else:
+            frames, labels = np.array(self.frames, dtype=object), np.array(self.labels, dtype=object)
+        np.savez(path, frames=frames, labels=labels, bits=np.array(self.bits))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Pool:
         z = np.load(path, allow_pickle=True)
-        return cls(list(z["frames"]), list(z["labels"]), [int(b) for b in z["bits"]])
+        bits = [int(b) for b in z["bits"]]
+        frames = [f.astype(np.uint8) if b <= 8 else f for f, b in zip(z["frames"], bits, strict=True)]
+        return cls(frames, list(z["labels"]), bits)
 
 
 def _render_one(args: tuple[int, int, int, float]) -> tuple[list[np.ndarray], list[np.ndarray], int]:

@@ -1,8 +1,8 @@
 """Train the gated U-Net (or the plain U-Net baseline) on phantom + real frames.
 
 Reproducible (seeded data and weights), CPU-capable (``--device cpu --threads N``,
-fp32 throughout, no AMP), batch 8, Adam with lr 5e-4 and weight decay 5e-4 as
-in the paper, cosine learning-rate decay, checkpoints every ``--ckpt-every``
+fp32; ``--amp`` for bfloat16 autocast on a GPU), batch 8 by default, Adam with lr
+5e-4 and weight decay 5e-4 as in the paper, cosine learning-rate decay, checkpoints every ``--ckpt-every``
 steps and at the end (``last.pt``), resumable (``--resume``), a progress bar,
 and a log (``log.csv``) of the loss and of the validation scores: vessel Dice on
 the real validation split and per-class IoU on a small phantom validation set.
@@ -127,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time-limit", type=float, default=0, help="stop (and save) after this many seconds")
     ap.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     ap.add_argument("--init", help="start from these weights (fine-tuning)")
+    ap.add_argument("--amp", action="store_true", help="bfloat16 autocast (for GPUs with bf16 tensor cores)")
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
 
@@ -140,6 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     device = torch.device(auto if a.device == "auto" else a.device)
     widths = tuple(int(v) for v in a.widths.split(","))
     model = build_model(a.arch, widths).to(device)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+        model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=a.lr, weight_decay=a.weight_decay)
     step = 0
     t_limit_start = time.time()
@@ -165,8 +169,16 @@ def main(argv: list[str] | None = None) -> int:
         pool = render_pool(range(a.pool_phantoms), workers=a.workers, progress=not a.quiet)
         if a.pool:
             pool.save(a.pool)
-    val_pool = render_pool(range(VAL_SEED0, VAL_SEED0 + 16), frames_per_seed=2, keep_empty=0.5,
-                           workers=a.workers, progress=False)
+    val_path = Path(f"{a.pool}.val.npz") if a.pool else None
+    if val_path is not None and val_path.is_file():
+        val_pool = Pool.load(val_path)
+    else:
+        val_pool = render_pool(range(VAL_SEED0, VAL_SEED0 + 16), frames_per_seed=2, keep_empty=0.5,
+                               workers=a.workers, progress=False)
+        if val_path is not None:  # cached beside the pool (written atomically: runs may race)
+            tmp = val_path.with_name(f".{val_path.name}.{os.getpid()}.npz")
+            val_pool.save(tmp)
+            os.replace(tmp, val_path)
     real_train_ids = [i for i in range(1, 41) if i not in REAL_VAL_IDS]
     real_imgs, real_masks = ([], []) if a.no_real else load_real(real_train_ids, a.real_dir)
     real_val = load_real(REAL_VAL_IDS, a.real_dir)
@@ -202,7 +214,11 @@ def main(argv: list[str] | None = None) -> int:
         x, t = aug.batch(a.batch)
         for g in opt.param_groups:
             g["lr"] = learning_rate()
-        loss = seg_loss(model(x), t)
+        if device.type == "cuda":
+            x = x.contiguous(memory_format=torch.channels_last)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=a.amp):
+            logits = model(x)
+        loss = seg_loss(logits, t)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

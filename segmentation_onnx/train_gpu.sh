@@ -12,13 +12,13 @@ REAL=${REAL:-.data/xca-real}; CONFIGS=${CONFIGS:-"gated:16,32,64,128,192 plain:1
 mkdir -p "$RUNS" "$OUT"
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
 t0=$(date +%s)
-[ -f "$POOL" ] || python3 -m segmentation_onnx.data --out "$POOL" --phantoms "$PHANTOMS" --frames 6 2>&1 | tail -1
+[ -f "$POOL" ] || python3 -m segmentation_onnx.data --out "$POOL" --phantoms "$PHANTOMS" --first-seed "${FIRST_SEED:-0}" --frames 6 2>&1 | tail -1
 echo "pool: $(( $(date +%s) - t0 )) s"
 for cfg in $CONFIGS; do
   arch=${cfg%%:*}; widths=${cfg#*:}; name=${arch}_${widths%%,*}
   python3 -m segmentation_onnx.train --arch "$arch" --widths "$widths" --out "$RUNS/$name" --pool "$POOL" \
     --steps "$STEPS" --batch "${BATCH:-8}" --val-every "${VAL_EVERY:-500}" --time-limit "$TRAIN_SECONDS" \
-    --real-dir "$REAL" --quiet \
+    --real-dir "$REAL" --quiet ${AMP:+--amp} \
     ${INIT_DIR:+--init "$INIT_DIR/$name/weights.pt"} --real-fraction "${REAL_FRACTION:-0.35}" \
     > "$RUNS/$name.txt" 2>&1 &
 done
