@@ -20,8 +20,8 @@ from torch import nn
 
 __all__ = ["GatedUNet", "Gate", "UNet", "build_model", "DEFAULT_WIDTHS", "N_CLASSES"]
 
-#: Channels of the four encoder blocks and the bottleneck. Chosen so that the fp32 ONNX file
-#: stays below 10 MB and a 512 x 512 frame runs in well under 100 ms on two CPU cores.
+#: Channels of the four encoder blocks and the bottleneck. The fp32 ONNX file stays below
+#: 10 MB; a 512 x 512 frame takes about 0.4 s on two CPU cores (see MODEL_CARD.md).
 DEFAULT_WIDTHS: tuple[int, ...] = (16, 32, 64, 128, 192)
 #: background, vessel, catheter, balloon, lead
 N_CLASSES = 5

@@ -108,8 +108,8 @@ class BatchAugmenter:
     device : torch.device
     seed : int
     augment : bool
-        False: no photometric augmentation and no warp randomness beyond the
-        crop position (for checks).
+        False: no photometric augmentation; crops are plain windows of the
+        normalized frame at integer offsets (for checks).
     """
 
     def __init__(self, pool: Pool, real_images: list[np.ndarray], real_masks: list[np.ndarray], *,
@@ -204,6 +204,10 @@ class BatchAugmenter:
             jitter = jitter * (0.1 * self.crop / scale)[:, None]
             use = (has & (self._u(b) < 0.75))[:, None]
             centre = torch.where(use, fg_xy + jitter, centre)
+        if not self.augment:  # plain windows of the frame: integer offsets, inside it where it fits
+            half = self.crop / 2
+            lim = torch.tensor([max(w - half, half), max(h - half, half)], device=x.device)
+            centre = torch.minimum(torch.clamp(centre.round(), min=half), lim)
         return warp(x, target, centre, scale, angle, flip, self.crop)
 
     def batch(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
