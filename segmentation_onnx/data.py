@@ -72,7 +72,7 @@ def load_real(ids: tuple[int, ...] | list[int], root: str | os.PathLike | None =
 
 @dataclass
 class Pool:
-    """Rendered phantom frames (raw pixels) with labels and the bits stored per pixel."""
+    """Rendered phantom frames (raw pixels, any integer dtype) with labels and the bits used per pixel."""
 
     frames: list[np.ndarray]
     labels: list[np.ndarray]
@@ -89,9 +89,7 @@ class Pool:
     @classmethod
     def load(cls, path: str | os.PathLike) -> Pool:
         z = np.load(path, allow_pickle=True)
-        bits = [int(b) for b in z["bits"]]
-        frames = [f.astype(np.uint8) if b <= 8 else f for f, b in zip(z["frames"], bits, strict=True)]
-        return cls(frames, list(z["labels"]), bits)
+        return cls(list(z["frames"]), list(z["labels"]), [int(b) for b in z["bits"]])
 
 
 def _render_one(args: tuple[int, int, int, float]) -> tuple[list[np.ndarray], list[np.ndarray], int]:

@@ -144,7 +144,7 @@ class BatchAugmenter:
         b, _, h, w = x.shape
         col = lambda t: t[:, None, None, None]  # noqa: E731
         if lab is not None:
-            # more (or less) iodine in the vessels; catheter filled with contrast or not
+            # more iodine in the vessels; catheter filled with more or less contrast
             sig = torch.full((b,), 0.8, device=x.device)
             v = _gauss_blur((lab == 1).float()[:, None], sig)
             cth = _gauss_blur((lab == 2).float()[:, None], sig)
@@ -162,24 +162,21 @@ class BatchAugmenter:
             x = torch.where(col(blur) > 0, xb, x)
         s_n = self._u(b, 0.005, 0.04) * self._bern(b, 0.6)
         x = x + torch.randn(x.shape, device=x.device, generator=self.gen) * col(s_n) * x.clamp(min=0).sqrt()
-        # image-intensifier circle (25%) or shutter blades (20%)
+        # image-intensifier circle (25%) or shutter blades (20%); masks broadcast to (B, 1, H, W)
         u = self._u(b)
         yy = torch.arange(h, device=x.device, dtype=x.dtype)[:, None]
         xx = torch.arange(w, device=x.device, dtype=x.dtype)[None, :]
-        cy, cx = col(self._u(b, 0.45, 0.55) * h)[:, 0], col(self._u(b, 0.45, 0.55) * w)[:, 0]
-        r = col(self._u(b, 0.5, 0.72) * min(h, w))[:, 0]
-        outside = ((yy - cy) ** 2 + (xx - cx) ** 2 > r * r) & (col(u)[:, 0] < 0.25)
-        black = col(self._u(b, 0.0, 0.03))[:, 0]
-        x = torch.where(outside[:, None], black[:, None], x)
+        cy, cx = col(self._u(b, 0.45, 0.55) * h), col(self._u(b, 0.45, 0.55) * w)
+        r = col(self._u(b, 0.5, 0.72) * min(h, w))
+        outside = ((yy - cy) ** 2 + (xx - cx) ** 2 > r * r) & col(u < 0.25)
+        x = torch.where(outside, col(self._u(b, 0.0, 0.03)), x)
         shut = (u >= 0.25) & (u < 0.45)
         for side in range(4):
-            on = shut & (self._u(b) < 0.5)
-            t = (self._u(b, 0.01, 0.12) * (h if side < 2 else w)).floor()
-            dark = self._u(b) < 0.7
-            val = torch.where(dark, self._u(b, 0.0, 0.05), self._u(b, 0.8, 1.0))
-            tt, vv = col(t)[:, 0], col(val)[:, 0]
-            m = [yy < tt, yy >= h - tt, xx < tt, xx >= w - tt][side] & col(on)[:, 0]
-            x = torch.where(m[:, None], vv[:, None], x)
+            on = col(shut & (self._u(b) < 0.5))
+            t = col((self._u(b, 0.01, 0.12) * (h if side < 2 else w)).floor())
+            val = torch.where(self._u(b) < 0.7, self._u(b, 0.0, 0.05), self._u(b, 0.8, 1.0))
+            m = [yy < t, yy >= h - t, xx < t, xx >= w - t][side] & on
+            x = torch.where(m, col(val), x)
         return x
 
     def _crops(self, x: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
