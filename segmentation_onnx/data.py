@@ -26,6 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vesselcad.io.atomic import atomic_path
+
 __all__ = ["REAL_VAL_IDS", "NOT_VESSEL", "IGNORE", "Pool", "find_real_dir", "load_real", "render_pool",
            "render_test_set"]
 
@@ -79,12 +81,15 @@ class Pool:
     bits: list[int]
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write an ``.npz`` (stacked uint16 frames when all frames share one shape: fast to load)."""
+        """Write an ``.npz`` atomically (stacked uint16 frames when all frames share one shape: fast
+        to load); like :func:`numpy.savez`, ``.npz`` is appended to a name without it."""
         if len({f.shape for f in self.frames}) == 1:
             frames, labels = np.stack(self.frames).astype(np.uint16), np.stack(self.labels)
         else:
             frames, labels = np.array(self.frames, dtype=object), np.array(self.labels, dtype=object)
-        np.savez(path, frames=frames, labels=labels, bits=np.array(self.bits))
+        path = os.fspath(path)
+        with atomic_path(path if path.endswith(".npz") else f"{path}.npz", keep_name=True) as tmp:
+            np.savez(tmp, frames=frames, labels=labels, bits=np.array(self.bits))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Pool:

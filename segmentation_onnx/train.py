@@ -175,10 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         val_pool = render_pool(range(VAL_SEED0, VAL_SEED0 + 16), frames_per_seed=2, keep_empty=0.5,
                                workers=a.workers, progress=False)
-        if val_path is not None:  # cached beside the pool (written atomically: runs may race)
-            tmp = val_path.with_name(f".{val_path.name}.{os.getpid()}.npz")
-            val_pool.save(tmp)
-            os.replace(tmp, val_path)
+        if val_path is not None:  # cached beside the pool (Pool.save is atomic: runs may race)
+            val_pool.save(val_path)
     real_train_ids = [i for i in range(1, 41) if i not in REAL_VAL_IDS]
     real_imgs, real_masks = ([], []) if a.no_real else load_real(real_train_ids, a.real_dir)
     real_val = load_real(REAL_VAL_IDS, a.real_dir)
