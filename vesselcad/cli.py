@@ -92,7 +92,7 @@ def _demo_segmentation(frame_a, frame_b, truth_a, truth_b, png) -> dict[str, flo
     """Run the bundled model on the chosen frame pair; IoU per class present, overlay picture."""
     import cv2
 
-    from .io.atomic import atomic_path
+    from .io.atomic import atomic_write_bytes
     from .segment import CLASSES, Segmenter, overlay_labels
 
     frames = np.stack([frame_a, frame_b])
@@ -104,9 +104,7 @@ def _demo_segmentation(frame_a, frame_b, truth_a, truth_b, png) -> dict[str, flo
         if t.any():
             scores[name] = round(float((t & p).sum() / (t | p).sum()), 4)
     pic = np.hstack([overlay_labels(f, p, truth=t == 1) for f, p, t in zip(frames, pred, truth, strict=True)])
-    with atomic_path(png) as tmp:
-        ok, buf = cv2.imencode(".png", cv2.cvtColor(pic, cv2.COLOR_RGB2BGR))
-        tmp.write_bytes(buf.tobytes())
+    atomic_write_bytes(png, cv2.imencode(".png", cv2.cvtColor(pic, cv2.COLOR_RGB2BGR))[1].tobytes())
     return scores
 
 
