@@ -111,6 +111,11 @@ class CArmView:
         at the detector.
     rows, cols : int
         Image size in pixels.
+    offset_mm : tuple of float, optional
+        Position of the C-arm's isocentre in the patient frame (LPS mm),
+        default ``(0, 0, 0)``. Non-zero when the patient or table moved
+        between two runs: the whole C-arm (source and detector) is shifted by
+        it. Set by geometry refinement; DICOM files never carry it.
 
     Examples
     --------
@@ -127,6 +132,7 @@ class CArmView:
     pixel_spacing_mm: tuple[float, float]
     rows: int
     cols: int
+    offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -159,6 +165,13 @@ class CArmView:
             if isinstance(value, bool) or int(value) != value or int(value) < 1:
                 raise GeometryError(f"{name}: expected a positive integer, got {value!r}")
             set_(self, name, int(value))
+        try:
+            off = tuple(float(x) for x in np.asarray(self.offset_mm, dtype=float).reshape(3))
+        except (TypeError, ValueError):
+            raise GeometryError(f"offset_mm: expected three numbers (mm), got {self.offset_mm!r}") from None
+        if not all(math.isfinite(x) for x in off):
+            raise GeometryError(f"offset_mm: expected three finite numbers, got {off}")
+        set_(self, "offset_mm", off)
 
     # ------------------------------------------------------------------ frames
     @property
@@ -187,13 +200,13 @@ class CArmView:
 
     @property
     def source(self) -> np.ndarray:
-        """X-ray source position in LPS mm, ``-SOD * d``."""
-        return -self.sod_mm * self.detector_direction
+        """X-ray source position in LPS mm, ``offset - SOD * d``."""
+        return np.asarray(self.offset_mm) - self.sod_mm * self.detector_direction
 
     @property
     def detector_centre(self) -> np.ndarray:
-        """Detector centre in LPS mm, ``(SID - SOD) * d``."""
-        return (self.sid_mm - self.sod_mm) * self.detector_direction
+        """Detector centre in LPS mm, ``offset + (SID - SOD) * d``."""
+        return np.asarray(self.offset_mm) + (self.sid_mm - self.sod_mm) * self.detector_direction
 
     @property
     def magnification(self) -> float:
@@ -212,9 +225,11 @@ class CArmView:
         if "P" not in self._cache:
             d, u, v = self.detector_direction, self.col_axis, self.row_axis
             dr, dc = self.pixel_spacing_mm
-            last = np.append(d, self.sod_mm)  # w = (X - source) . d
-            row0 = np.append(self.sid_mm / dc * u, 0.0) + (self.cols - 1) / 2.0 * last
-            row1 = np.append(self.sid_mm / dr * v, 0.0) + (self.rows - 1) / 2.0 * last
+            o = np.asarray(self.offset_mm)
+            last = np.append(d, self.sod_mm - o @ d)  # w = (X - source) . d
+            fc, fr = self.sid_mm / dc, self.sid_mm / dr
+            row0 = np.append(fc * u, -fc * (u @ o)) + (self.cols - 1) / 2.0 * last
+            row1 = np.append(fr * v, -fr * (v @ o)) + (self.rows - 1) / 2.0 * last
             self._cache["P"] = np.vstack([row0, row1, last])
         return self._cache["P"].copy()
 
@@ -244,7 +259,8 @@ class CArmView:
     def depth(self, points_mm: Any) -> np.ndarray:
         """Distance of points from the source along the central ray, in mm, shape (...)."""
         pts = as_points(points_mm, 3, "points_mm")
-        return pts @ self.detector_direction + self.sod_mm
+        d = self.detector_direction
+        return pts @ d + (self.sod_mm - np.asarray(self.offset_mm) @ d)
 
     def pixel_to_detector(self, points_px: Any) -> np.ndarray:
         """3D position (LPS mm) on the detector plane of pixel coordinates ``(col, row)``.
@@ -288,6 +304,8 @@ class CArmView:
         """The ``CArmView`` keyword arguments as plain JSON-able values."""
         out = {k: getattr(self, k) for k in _VIEW_KEYS}
         out["pixel_spacing_mm"] = list(self.pixel_spacing_mm)
+        if any(self.offset_mm):
+            out["offset_mm"] = list(self.offset_mm)
         return out
 
     @classmethod
@@ -298,12 +316,13 @@ class CArmView:
         missing = [k for k in _VIEW_KEYS if k not in data]
         if missing:
             raise GeometryError(f"{source}: missing CArmView entries {missing}")
-        unknown = [k for k in data if k not in _VIEW_KEYS]
+        unknown = [k for k in data if k not in (*_VIEW_KEYS, "offset_mm")]
         if unknown:
             raise GeometryError(
                 f"{source}: unknown CArmView entries {unknown}; expected {list(_VIEW_KEYS)}"
             )
-        return cls(**{k: data[k] for k in _VIEW_KEYS})
+        extra = {"offset_mm": data["offset_mm"]} if data.get("offset_mm") is not None else {}
+        return cls(**{k: data[k] for k in _VIEW_KEYS}, **extra)
 
     def to_json(self, path: str | os.PathLike) -> None:
         """Write the view as JSON (written atomically)."""

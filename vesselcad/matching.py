@@ -312,7 +312,8 @@ def _depths(graph: CentrelineGraph) -> dict[int, int]:
 
 
 def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
-                 graph_b: CentrelineGraph) -> GraphMatch:
+                 graph_b: CentrelineGraph, *, landmark_tol_px: float = LANDMARK_TOL_PX,
+                 branch_tol_px: float = BRANCH_TOL_PX) -> GraphMatch:
     """Pair the landmarks and branches of two views' centreline graphs.
 
     Every branch of one view is a candidate partner of every branch, or chain
@@ -332,6 +333,10 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         The two views (their geometry defines the reconstruction error).
     graph_a, graph_b : CentrelineGraph
         From :func:`vesselcad.centreline_graph` on the matched-phase frames.
+    landmark_tol_px, branch_tol_px : float
+        Largest reconstruction error (px) of a landmark pair (plus the mean of
+        their radii) and mean error along a branch pair. Raise them to find
+        the pairs of a roughly calibrated geometry before refining it.
 
     Returns
     -------
@@ -350,6 +355,9 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     for v, name in ((view_a, "view_a"), (view_b, "view_b")):
         if not isinstance(v, CArmView):
             raise ArgumentError(f"{name}: expected a vesselcad.CArmView, got {type(v).__name__}")
+    for tol, name in ((landmark_tol_px, "landmark_tol_px"), (branch_tol_px, "branch_tol_px")):
+        if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
+            raise ArgumentError(f"{name}: expected a positive number of pixels, got {tol!r}")
     ga = _check_graph(graph_a, "graph_a")
     gb = _check_graph(graph_b, "graph_b")
     if not ga.branches or not gb.branches:
@@ -363,7 +371,7 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     rb_px = np.array([lm.radius_px for lm in gb.landmarks])
     kind_a = np.array([lm.kind for lm in ga.landmarks])
     kind_b = np.array([lm.kind for lm in gb.landmarks])
-    ok_lm = (lm_err <= LANDMARK_TOL_PX + 0.5 * (ra_px[:, None] + rb_px[None, :])) & (
+    ok_lm = (lm_err <= landmark_tol_px + 0.5 * (ra_px[:, None] + rb_px[None, :])) & (
         kind_a[:, None] == kind_b[None, :])
 
     arcs_a = [arc_length(b.points_px) for b in ga.branches]
@@ -387,10 +395,10 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         if pa.nodes[0] == pa.nodes[-1] or pb.nodes[0] == pb.nodes[-1]:
             continue
         cost, D = _compare(view_a, view_b, pa, pb)
-        if cost > BRANCH_TOL_PX:
+        if cost > branch_tol_px:
             continue
         extra = len(pa.edges) + len(pb.edges) - 2
-        gain = min(pa.length, pb.length) * (1.0 - cost / BRANCH_TOL_PX) * (CHAIN_FACTOR ** extra)
+        gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra)
         cands.append((gain, cost, pa, pb, D))
     cands.sort(key=lambda c: -c[0])
 

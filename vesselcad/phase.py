@@ -437,7 +437,8 @@ def match_phase(
                                 f"{run.frames.shape}")
     if isinstance(window, bool) or int(window) != window or window < 0:
         raise ArgumentError(f"window: expected a non-negative integer, got {window!r}")
-    window = int(window)
+    # A short run cannot hold a window of window + 1 valid pairs on a diagonal: shrink it.
+    window = min(int(window), (min(run_a.n_frames, run_b.n_frames) - 1) // 2)
     if not 0.0 <= min_contrast <= 1.0:
         raise ArgumentError(f"min_contrast: expected a share in [0, 1], got {min_contrast}")
     if objects == "auto":

@@ -248,7 +248,7 @@ def _geometry_dict(geometry: Any) -> dict[str, Any]:
             f"geometry: expected a dict of CArmView entries or a view.json path, got "
             f"{type(geometry).__name__}"
         )
-    unknown = [k for k in geometry if k not in _VIEW_KEYS and k != "frame_time_ms"]
+    unknown = [k for k in geometry if k not in _VIEW_KEYS and k not in ("frame_time_ms", "offset_mm")]
     if unknown:
         raise ArgumentError(f"geometry: unknown entries {unknown}; expected some of {list(_VIEW_KEYS)}")
     return dict(geometry)
@@ -300,6 +300,8 @@ def view_from_dataset(dataset: Any, geometry: Any = None, source: str = "") -> C
         num = _number(raw) if raw is not None and raw != "" else None
         if num is not None:
             values[key] = num
+    if given.get("offset_mm") is not None:
+        values["offset_mm"] = given["offset_mm"]
     missing = [k for k in _VIEW_KEYS if k not in values]
     if missing:
         names = ", ".join(f"{GEOMETRY_TAGS[k][0]} {GEOMETRY_TAGS[k][1]} [{k}]" for k in missing)
