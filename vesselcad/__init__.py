@@ -25,6 +25,8 @@ from .io import XARun, load_run, save_run
 from .matching import BranchPair, GraphMatch, LandmarkMatch, Unmatched, match_graphs, plot_graph_match
 from .metrics import centreline_error, reprojection_error
 from .phase import PhaseError, PhaseMatch, match_phase
+from .pipeline import BranchResult, Reconstruction, ReconstructionError, reconstruct
+from .refine import Refinement, refine_geometry
 from .segment import Segmenter
 from .tree import TreeBranch, VesselTree
 
@@ -68,6 +70,12 @@ __all__ = [
     "plot_graph_match",
     "VesselTree",
     "TreeBranch",
+    "reconstruct",
+    "Reconstruction",
+    "ReconstructionError",
+    "BranchResult",
+    "refine_geometry",
+    "Refinement",
     "VesselSolid",
     "cfd",
     "reprojection_error",

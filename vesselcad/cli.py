@@ -1,6 +1,8 @@
 """The ``vesselcad`` command line. It only parses arguments and calls the Python API.
 
-Exit codes: 0 success; 2 bad input or arguments (a VesselcadError, message on stderr).
+Exit codes: 0 success; 2 bad input or arguments (a VesselcadError, message on stderr);
+3 the runs were read but gave no tree (the message names the stage; report pictures
+are written where possible); 4 ``batch``: some cases failed (the others are done).
 """
 
 from __future__ import annotations
@@ -38,54 +40,92 @@ def _cmd_phantom(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_reconstruction(rec, paths: dict, out: Path) -> None:
+    e = rec.errors
+    ph = rec.phase
+    print(f"frames ({ph.frame_a}, {ph.frame_b}) by {', '.join(ph.objects) or 'given pair'}: phase error "
+          f"{ph.error_mm:.3f} mm, confidence {ph.confidence:.2f}")
+    print(f"2D graphs: {len(rec.graphs[0].branches)} and {len(rec.graphs[1].branches)} branches; "
+          f"{len(rec.match.pairs)} branch pairs matched, {len(rec.ok_branches)} reconstructed in 3D")
+    if e:
+        print(f"reprojection error {e['mean_px']:.2f} +- {e['sd_px']:.2f} px ({e['mean_mm']:.3f} +- "
+              f"{e['sd_mm']:.3f} mm), max {e['max_px']:.2f} px")
+    if rec.refinement is not None:
+        r = rec.refinement
+        print(f"geometry refinement: {'applied' if r.applied else 'not applied'} (error {r.before_px:.2f} -> "
+              f"{r.after_px:.2f} px)")
+    if rec.solid is not None:
+        print(f"solid: {rec.solid!r}")
+    print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in rec.timings.items()))
+    for w in rec.warnings[:12]:
+        print(f"  warning: {w}")
+    if len(rec.warnings) > 12:
+        print(f"  ... {len(rec.warnings) - 12} more warnings in {out / 'report.json'}")
+    print("wrote " + ", ".join(sorted(paths)) + f" in {out}")
+
+
+def _reconstruct_args(args: argparse.Namespace) -> dict:
+    return {"method": args.method, "frames": args.frames, "model": args.model, "objects": args.objects,
+            "refine": not args.no_refine, "solid": not args.no_solid, "progress": not args.quiet}
+
+
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from .pipeline import reconstruct
+
+    out = Path(args.out)
+    rec = reconstruct(args.run_a, args.run_b, geometry_a=args.geometry_a or args.geometry,
+                      geometry_b=args.geometry_b or args.geometry, **_reconstruct_args(args))
+    paths = rec.write(out, html=not args.no_html)
+    if args.json:
+        print(json.dumps({"out": str(out), "files": sorted(str(p) for p in paths.values()),
+                          **{k: v for k, v in rec.report().items() if k in (
+                              "frame_a", "frame_b", "phase_error_mm", "reprojection", "tree", "warnings",
+                              "timings_s")}}))
+    elif not args.quiet:
+        _print_reconstruction(rec, paths, out)
+    return 0 if rec.tree is not None else 3
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .io import atomic_write_text, load_run
+    from .io import atomic_write_text
     from .phantom import generate_case, write_case
-    from .phase import match_phase, plot_error_matrix
+    from .phantom.compare import compare_with_truth
+    from .pipeline import reconstruct
 
     out = Path(args.out)
     t0 = time.perf_counter()
-    case = generate_case(args.seed, args.anatomy, args.frames, progress=not args.quiet)
+    case = generate_case(args.seed, args.anatomy, args.n_frames, rows=args.size, cols=args.size,
+                         miscalibration_deg=args.miscalibration, progress=not args.quiet)
     paths = write_case(case, out, preview=True)
-    run_a = load_run(paths["run_a"])
-    run_b = load_run(paths["run_b"])
-    # Phase matching uses the phantom's ground-truth labels: the bundled model labels guiding
-    # catheters less reliably (docs/segmentation.md) and costs ~0.4 s per frame on 2 cores.
-    match = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels)
-    seg_scores = _demo_segmentation(run_a.frames[match.frame_a], run_b.frames[match.frame_b],
-                                    case.run_a.labels[match.frame_a], case.run_b.labels[match.frame_b],
-                                    out / "segmentation.png")
-    plot_error_matrix(match, out / "phase.png")
-    ph_a, ph_b = case.run_a.phases[match.frame_a], case.run_b.phases[match.frame_b]
-    d = np.abs(ph_a - ph_b) % 1.0
-    d = np.minimum(d, 1.0 - d)
+    labels = (case.run_a.labels, case.run_b.labels) if args.labels == "truth" else None
+    rec = reconstruct(paths["run_a"], paths["run_b"], labels=labels, **_reconstruct_args(args))
+    written = rec.write(out, html=not args.no_html)
+    truth = compare_with_truth(rec, case)
     summary = {
-        "out": str(out),
-        "anatomy": args.anatomy,
-        "branches": len(case.anatomy.vessels),
-        "frames": [run_a.n_frames, run_b.n_frames],
-        "views": [run_a.view.to_dict(), run_b.view.to_dict()],
-        "phase": match.to_dict(),
-        "phase_error_mm_frame_0_0": round(float(match.matrix[0, 0]), 4),
-        "true_phase_difference": {"cardiac": round(float(d[0]), 4), "respiratory": round(float(d[1]), 4)},
-        "segmentation_iou_chosen_frames": seg_scores,
+        "out": str(out), "anatomy": args.anatomy, "seed": args.seed, "labels": args.labels,
+        "truth_branches": len(case.anatomy.vessels),
+        "frames": [rec.phase.frame_a, rec.phase.frame_b],
+        "true_phase_difference": truth.pop("phase_difference"),
+        "truth": truth,
+        "reprojection": {k: round(v, 4) for k, v in rec.errors.items()},
+        "branches": [len(rec.ok_branches), len(rec.branches)],
         "seconds": round(time.perf_counter() - t0, 2),
+        "timings_s": {k: round(v, 3) for k, v in rec.timings.items()},
     }
     atomic_write_text(out / "demo.json", json.dumps(summary, indent=2) + "\n")
     if args.json:
         print(json.dumps(summary))
     elif not args.quiet:
-        print(f"demo case in {out} ({summary['seconds']} s): {summary['branches']} branches, "
-              f"runs of {run_a.n_frames} and {run_b.n_frames} frames re-read from DICOM")
-        print(f"  motion phase matching ({', '.join(match.objects)}): frames ({match.frame_a}, "
-              f"{match.frame_b}), key point error {match.error_mm:.3f} mm "
-              f"(frames (0, 0): {summary['phase_error_mm_frame_0_0']:.3f} mm); true phase difference "
-              f"{d[0]:.3f} cardiac, {d[1]:.3f} respiratory cycles")
-        print("  segmentation model on the chosen frames, IoU vs truth: "
-              + ", ".join(f"{k} {v:.3f}" for k, v in seg_scores.items()))
-        print(f"  pictures: {paths['preview']}, {out / 'phase.png'}, {out / 'segmentation.png'}")
-        print("  next stages (3D reconstruction, CAD solid) are not chained into demo yet.")
-    return 0
+        print(f"phantom {args.anatomy} seed {args.seed}: {summary['truth_branches']} vessels, runs of "
+              f"{args.n_frames} frames written as DICOM and read back ({args.labels} labels)")
+        _print_reconstruction(rec, written, out)
+        d = summary["true_phase_difference"]
+        print(f"against the phantom's truth: 3D centreline error {truth['mean_mm']:.3f} mm mean, "
+              f"{truth['p95_mm']:.3f} mm p95, {truth['max_mm']:.3f} mm max; {truth['coverage']:.0%} of the "
+              f"true tree's length reconstructed; true phase difference {d['cardiac']:.3f} cardiac, "
+              f"{d['respiratory']:.3f} respiratory cycles")
+        print(f"open {out / 'report.html'} in a browser; {summary['seconds']} s in all")
+    return 0 if rec.tree is not None else 3
 
 
 def _demo_segmentation(frame_a, frame_b, truth_a, truth_b, png) -> dict[str, float]:
@@ -225,13 +265,42 @@ def _parser() -> argparse.ArgumentParser:
     inf.add_argument("--json", action="store_true", help="print one JSON object")
     inf.set_defaults(func=_cmd_info)
 
-    de = sub.add_parser("demo", help="generate a phantom case and run the pipeline on it")
+    def recon_options(q: argparse.ArgumentParser, pair_flag: str = "--frames") -> None:
+        q.add_argument("--method", choices=["nurbs", "epipolar"], default="nurbs",
+                       help="3D centrelines by NURBS surface intersection (default) or the epipolar baseline")
+        q.add_argument(pair_flag, dest="frames", type=int, nargs=2, metavar=("I", "J"),
+                       help="use frame I of run A and frame J of run B instead of phase matching")
+        q.add_argument("--model", metavar="ONNX", help="segmentation model (default: the bundled one)")
+        q.add_argument("--objects", default="auto",
+                       help="stationary object for phase matching: auto, balloon, catheter or lead")
+        q.add_argument("--no-refine", action="store_true", help="keep the files' geometry as it is")
+        q.add_argument("--no-solid", action="store_true", help="centrelines only, no CAD solid")
+        q.add_argument("--no-html", action="store_true", help="skip report.html")
+        q.add_argument("--quiet", action="store_true", help="no progress bars or summary")
+        q.add_argument("--json", action="store_true", help="print a JSON summary")
+
+    rc = sub.add_parser("reconstruct", help="3D vessel tree from two runs (DICOM XA or frame folders)")
+    rc.add_argument("run_a", metavar="A", help="run A: XA DICOM file or folder of frames with view.json")
+    rc.add_argument("run_b", metavar="B", help="run B")
+    rc.add_argument("--out", required=True, help="output folder")
+    rc.add_argument("--geometry", metavar="VIEW_JSON",
+                    help="view.json whose entries override or fill both files' geometry tags")
+    rc.add_argument("--geometry-a", metavar="VIEW_JSON", help="the same for run A only")
+    rc.add_argument("--geometry-b", metavar="VIEW_JSON", help="the same for run B only")
+    recon_options(rc)
+    rc.set_defaults(func=_cmd_reconstruct)
+
+    de = sub.add_parser("demo", help="generate a phantom case and reconstruct it end to end")
     de.add_argument("--out", default="vesselcad-demo", help="output folder (default vesselcad-demo)")
     de.add_argument("--seed", type=int, default=0)
     de.add_argument("--anatomy", choices=["lca", "rca", "cs"], default="lca")
-    de.add_argument("--frames", type=int, default=40)
-    de.add_argument("--quiet", action="store_true")
-    de.add_argument("--json", action="store_true", help="print a JSON summary")
+    de.add_argument("--frames", dest="n_frames", type=int, default=40, help="frames per run (40)")
+    de.add_argument("--size", type=int, default=512, help="image size in pixels (512)")
+    de.add_argument("--miscalibration", type=float, default=0.0, metavar="DEG",
+                    help="max angle error written into the DICOM headers")
+    de.add_argument("--labels", choices=["model", "truth"], default="model",
+                    help="segment with the bundled model (default) or use the phantom's true labels")
+    recon_options(de, "--pair")
     de.set_defaults(func=_cmd_demo)
 
     me = sub.add_parser("mesh", help="CFD mesh (gmsh) of a tree: labelled caps, flow extensions, "
@@ -266,11 +335,18 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``vesselcad`` console script."""
     args = _parser().parse_args(argv)
-    if getattr(args, "frames", 1) is not None and getattr(args, "frames", 1) < 1:
-        print("vesselcad: error: --frames must be >= 1", file=sys.stderr)
-        return 2
+    for name in ("frames", "n_frames"):
+        value = getattr(args, name, None)
+        if isinstance(value, int) and value < 1:
+            print("vesselcad: error: --frames must be >= 1", file=sys.stderr)
+            return 2
+    from .pipeline import ReconstructionError
+
     try:
         return int(args.func(args))
+    except ReconstructionError as exc:
+        print(f"vesselcad: no tree: {exc}", file=sys.stderr)
+        return 3
     except VesselcadError as exc:
         print(f"vesselcad: error: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,560 @@
+"""The whole method on two runs: segmentation, phase, graphs, matching, 3D centrelines, tree, solid.
+
+:func:`reconstruct` only chains the stages' public functions; each stage's
+choices and numbers are kept on the returned :class:`Reconstruction` so that a
+person (``report.html``) or a script (``report.json``) can see where a case
+went wrong. One branch that cannot be reconstructed is reported with its
+reason; the rest of the tree is still produced.
+
+See docs/usage.md.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import warnings as _warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from .centreline2d import CentrelineGraph, centreline_graph
+from .errors import ArgumentError, VesselcadError, VesselcadWarning
+from .geometry import CArmView
+from .io import XARun, load_run
+from .matching import BranchPair, GraphMatch, match_graphs
+from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
+from .phase import PhaseMatch, match_phase
+from .refine import Refinement, refine_geometry
+from .tree import TreeBranch, VesselTree
+
+__all__ = ["BranchResult", "Reconstruction", "ReconstructionError", "reconstruct"]
+
+#: Smallest radius written to the tree (mm): thinner vessels are below the resolution of the images.
+MIN_RADIUS_MM = 0.3
+#: Shortest 3D branch kept (mm).
+MIN_LENGTH_MM = 1.0
+#: A 3D branch whose reprojection onto its own 2D pieces is worse than this (mean px, or max px)
+#: is not a consistent curve (a wrong match, or a span along the epipolar lines) and is left out.
+MAX_REPROJECTION_MEAN_PX = 2.0
+MAX_REPROJECTION_MAX_PX = 10.0
+#: 3D points farther than this from the isocentre are outside the heart (the isocentre is set on
+#: the heart; coronary trees span about +-60 mm around it) (mm).
+MAX_RADIUS_FROM_ISOCENTRE_MM = 100.0
+
+
+class ReconstructionError(VesselcadError, RuntimeError):
+    """The runs cannot give a tree; the message says which stage stopped and why."""
+
+
+@dataclass
+class BranchResult:
+    """One matched branch pair and what became of it.
+
+    Attributes
+    ----------
+    id : int
+        Branch id in the output tree (index in ``Reconstruction.branches``).
+    pair : BranchPair
+        The matched 2D pieces (view A, view B).
+    points_mm, radius_mm : numpy.ndarray or None
+        3D centreline samples every 0.5 mm and the radius there (None when it failed).
+    reprojection : ReprojectionError or None
+        Reprojection of the 3D centreline onto the pair's 2D pieces (both views).
+    parent : int or None
+        The branch it leaves from.
+    status : str
+        ``"ok"`` or the reason it is not in the tree.
+    warnings : list of str
+    """
+
+    id: int
+    pair: BranchPair
+    points_mm: np.ndarray | None = None
+    radius_mm: np.ndarray | None = None
+    reprojection: ReprojectionError | None = None
+    parent: int | None = None
+    status: str = "ok"
+    ill_conditioned: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def to_dict(self) -> dict[str, Any]:
+        rp = self.reprojection
+        return {
+            "id": self.id, "graph_branches": [self.pair.a, self.pair.b], "parent": self.parent,
+            "status": self.status,
+            "length_mm": None if self.points_mm is None else round(_length(self.points_mm), 3),
+            "reprojection_px": None if rp is None else {k: round(getattr(rp, f"{k}_px"), 4)
+                                                        for k in ("mean", "sd", "max")},
+            "reprojection_mm": None if rp is None else {k: round(getattr(rp, f"{k}_mm"), 4)
+                                                        for k in ("mean", "sd", "max")},
+            "match_error_px": round(self.pair.error_px, 4),
+            "ill_conditioned": round(self.ill_conditioned, 4),
+            "warnings": list(self.warnings),
+        }
+
+
+@dataclass
+class Reconstruction:
+    """Everything :func:`reconstruct` found, stage by stage.
+
+    Attributes
+    ----------
+    tree : VesselTree or None
+        The reconstructed centrelines with radii (LPS mm), None if no branch survived.
+    solid : VesselSolid or None
+        One fused OCCT solid of the tree (None if not asked for or if it failed; see warnings).
+    phase : PhaseMatch
+        The chosen frame pair and the phase error matrix.
+    graphs : (CentrelineGraph, CentrelineGraph)
+        2D centreline graphs of the chosen frames.
+    match : GraphMatch
+        Landmarks and branches paired across the views.
+    branches : list of BranchResult
+        One per branch pair, in tree-id order.
+    views : (CArmView, CArmView)
+        The geometry used for the tree (refined when ``refinement.applied``).
+    header_views : (CArmView, CArmView)
+        The geometry from the files (and overrides).
+    refinement : Refinement or None
+    frames : (numpy.ndarray, numpy.ndarray)
+        The chosen frames (images).
+    labels : (numpy.ndarray, numpy.ndarray)
+        Segmentation labels of the chosen frames.
+    errors : dict
+        Reprojection error over all reconstructed branches (px and mm, both views).
+    timings : dict of str to float
+        Seconds per stage.
+    warnings : list of str
+    """
+
+    tree: VesselTree | None
+    solid: Any
+    phase: PhaseMatch
+    graphs: tuple[CentrelineGraph, CentrelineGraph]
+    match: GraphMatch
+    branches: list[BranchResult]
+    views: tuple[CArmView, CArmView]
+    header_views: tuple[CArmView, CArmView]
+    refinement: Refinement | None
+    frames: tuple[np.ndarray, np.ndarray]
+    labels: tuple[np.ndarray, np.ndarray]
+    errors: dict[str, float]
+    timings: dict[str, float]
+    warnings: list[str] = field(default_factory=list)
+    sources: tuple[str, str] = ("", "")
+
+    @property
+    def ok_branches(self) -> list[BranchResult]:
+        return [b for b in self.branches if b.ok]
+
+    def __repr__(self) -> str:
+        n = len(self.ok_branches)
+        e = self.errors
+        nan = float("nan")
+        return (f"Reconstruction(frames=({self.phase.frame_a}, {self.phase.frame_b}), "
+                f"{n}/{len(self.branches)} branches, reprojection {e.get('mean_px', nan):.2f} px "
+                f"({e.get('mean_mm', nan):.3f} mm), solid={'yes' if self.solid is not None else 'no'}, "
+                f"{sum(self.timings.values()):.1f} s)")
+
+    def report(self) -> dict[str, Any]:
+        """The ``report.json`` object (docs/formats.md)."""
+        ref = self.refinement
+        views = {}
+        for key, v, h in zip(("view_a", "view_b"), self.views, self.header_views, strict=True):
+            views[key] = {"matrix": np.round(v.matrix, 8).tolist(), "refined": bool(ref is not None
+                                                                                 and ref.applied),
+                          "header": h.to_dict(), "used": v.to_dict()}
+        solid = None
+        if self.solid is not None:
+            chk = self.solid.check()
+            solid = {"valid": bool(chk["valid"]), "watertight": bool(chk["watertight"]),
+                     "solids": int(chk.get("solids", 1)), "volume_mm3": round(float(self.solid.volume), 3),
+                     "failed": {str(k): v for k, v in self.solid.failed.items()}}
+        return {
+            "vesselcad": _version(),
+            "sources": list(self.sources),
+            "frame_a": int(self.phase.frame_a), "frame_b": int(self.phase.frame_b),
+            "phase_error_mm": round(float(self.phase.error_mm), 4),
+            "phase_error_px": round(float(self.phase.error_px), 4),
+            "phase": self.phase.to_dict(),
+            **views,
+            "refinement": None if ref is None else ref.to_dict(),
+            "graphs": {"a": _graph_summary(self.graphs[0]), "b": _graph_summary(self.graphs[1])},
+            "matching": {"landmark_pairs": len(self.match.landmark_pairs),
+                         "branch_pairs": len(self.match.pairs),
+                         "unmatched": [{"kind": u.kind, "view": u.view, "index": u.index, "reason": u.reason}
+                                       for u in self.match.unmatched]},
+            "branches": [b.to_dict() for b in self.branches],
+            "reprojection": {k: round(v, 4) for k, v in self.errors.items()},
+            "tree": None if self.tree is None else {"branches": len(self.tree),
+                                                    "length_mm": round(self.tree.total_length_mm, 3)},
+            "solid": solid,
+            "warnings": list(self.warnings),
+            "timings_s": {k: round(v, 3) for k, v in self.timings.items()},
+        }
+
+    def write(self, out: str | os.PathLike, *, html: bool = True, progress: bool = False) -> dict[str, Path]:
+        """Write ``tree.step/.stl/.glb``, ``centrelines.json/.vtp``, ``report.json/.html`` into ``out``.
+
+        Every file is written atomically; files that need the solid are skipped (with a
+        warning in the report) when there is none. Returns the paths written.
+        """
+        from .report import write_outputs
+
+        return write_outputs(self, Path(out), html=html, progress=progress)
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+def _graph_summary(g: CentrelineGraph) -> dict[str, Any]:
+    return {"branches": len(g.branches), "branch_points": int(len(g.branch_points)),
+            "end_points": int(len(g.end_points)), "crossings": len(g.crossings),
+            "length_px": round(float(g.total_length_px), 2)}
+
+
+def _length(p: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
+
+
+def _as_run(run: Any, geometry: Any, name: str) -> XARun:
+    if isinstance(run, XARun):
+        if geometry is None:
+            return run
+        view = geometry if isinstance(geometry, CArmView) else CArmView.from_dict(
+            {**run.view.to_dict(), **dict(geometry)}, f"geometry_{name[-1]}")
+        return XARun(frames=run.frames, view=view, frame_times_ms=run.frame_times_ms,
+                     bits_stored=run.bits_stored, r_wave_frames=run.r_wave_frames,
+                     patient_id=run.patient_id, patient_name=run.patient_name, study_uid=run.study_uid,
+                     series_uid=run.series_uid, study_date=run.study_date, source=run.source)
+    if isinstance(run, (str, os.PathLike)):
+        if isinstance(geometry, CArmView):
+            geometry = geometry.to_dict()
+        return load_run(run, geometry=geometry)
+    raise ArgumentError(f"{name}: expected an XARun or the path of a run, got {type(run).__name__}")
+
+
+def _check_labels(labels: Any, run: XARun, name: str) -> np.ndarray:
+    arr = np.asarray(labels)
+    if arr.shape != run.frames.shape or not np.issubdtype(arr.dtype, np.integer):
+        raise ArgumentError(f"{name}: expected integer labels of shape {run.frames.shape} (one per frame of "
+                            f"the run), got {arr.dtype} {arr.shape}")
+    return arr.astype(np.uint8, copy=False)
+
+
+def _radius_along(points: np.ndarray, view: CArmView, pts_px: np.ndarray, rad_px: np.ndarray) -> np.ndarray:
+    """Radius (mm, at each 3D point's own depth) from the 2D radius of the nearest 2D sample."""
+    proj = view.project(points)
+    _, idx = cKDTree(pts_px).query(np.nan_to_num(proj))
+    spacing = float(np.mean(view.pixel_spacing_mm))
+    return rad_px[idx] * spacing * view.depth(points) / view.sid_mm
+
+
+def _branch_3d(k: int, pair: BranchPair, views: tuple[CArmView, CArmView], method: str) -> BranchResult:
+    from .centreline3d import intersect_centrelines
+
+    res = BranchResult(id=k, pair=pair)
+    va, vb = views
+    try:
+        curve = intersect_centrelines(va, pair.points_a_px, vb, pair.points_b_px, method=method)
+        pts = curve.sample_every(0.5)
+    except VesselcadError as exc:
+        res.status = f"3D centreline failed: {exc}"
+        return res
+    except Exception as exc:  # OCCT can fail on degenerate input; one branch never loses the rest
+        res.status = f"3D centreline failed ({type(exc).__name__}): {exc}"
+        return res
+    if _length(pts) < MIN_LENGTH_MM:
+        res.status = f"shorter than {MIN_LENGTH_MM} mm in 3D"
+        return res
+    ra = _radius_along(pts, va, pair.points_a_px, pair.radius_a_px)
+    rb = _radius_along(pts, vb, pair.points_b_px, pair.radius_b_px)
+    r = ndimage.median_filter(0.5 * (ra + rb), size=min(9, len(pts) | 1), mode="nearest")
+    res.points_mm = pts
+    res.radius_mm = np.maximum(r, MIN_RADIUS_MM)
+    rp = reprojection_error(pts, [va, vb], [pair.points_a_px, pair.points_b_px])
+    # Ends that leave the 2D pieces (a skeleton bending into a junction) are trimmed, not fatal.
+    per = np.maximum(distance_to_polyline(va.project(pts), pair.points_a_px),
+                     distance_to_polyline(vb.project(pts), pair.points_b_px))
+    good = np.flatnonzero(per <= MAX_REPROJECTION_MAX_PX)
+    if len(good) >= 2 and (good[0] > 0 or good[-1] < len(pts) - 1):
+        trimmed = 0.5 * (good[0] + len(pts) - 1 - good[-1])
+        pts, ra, rb = (x[good[0]:good[-1] + 1] for x in (pts, ra, rb))
+        res.points_mm, res.radius_mm = pts, res.radius_mm[good[0]:good[-1] + 1]
+        res.warnings.append(f"ends trimmed by {trimmed:.1f} mm where they left the 2D centrelines")
+        rp = reprojection_error(pts, [va, vb], [pair.points_a_px, pair.points_b_px])
+    res.reprojection = rp
+    res.ill_conditioned = float(curve.ill_conditioned_fraction)
+    res.warnings = list(curve.warnings) + res.warnings
+    far = float(np.max(np.linalg.norm(pts - 0.5 * (np.asarray(va.offset_mm) + np.asarray(vb.offset_mm)),
+                                      axis=1)))
+    if rp.mean_px > MAX_REPROJECTION_MEAN_PX or rp.max_px > MAX_REPROJECTION_MAX_PX:
+        res.status = (f"rejected: reprojection {rp.mean_px:.2f} px mean, {rp.max_px:.2f} px max (limits "
+                      f"{MAX_REPROJECTION_MEAN_PX}, {MAX_REPROJECTION_MAX_PX} px): the two 2D pieces are not "
+                      "one consistent 3D curve (wrong match or a span along the epipolar lines)")
+    elif far > MAX_RADIUS_FROM_ISOCENTRE_MM:
+        res.status = (f"rejected: reaches {far:.0f} mm from the isocentre (limit "
+                      f"{MAX_RADIUS_FROM_ISOCENTRE_MM:.0f} mm)")
+    return res
+
+
+def _link_parents(results: list[BranchResult]) -> None:
+    """Parent of each branch: the branch whose end is its start landmark, else the nearest one.
+
+    Candidate links (child start within 2 mm + 1.5 radii of another branch's
+    centreline) are accepted cheapest first while they keep the forest acyclic.
+    """
+    ok = [b for b in results if b.ok]
+    if not ok:
+        return
+    trees = {b.id: cKDTree(b.points_mm) for b in ok}
+    cand = []
+    for c in ok:
+        start = c.points_mm[0]
+        for p in ok:
+            if p.id == c.id:
+                continue
+            d, i = trees[p.id].query(start)
+            tol = 2.0 + 1.5 * float(p.radius_mm[i])
+            same_landmark = (c.pair.start == p.pair.end and None not in c.pair.start)
+            if same_landmark:
+                d = min(d, 0.0)
+            elif d > tol:
+                continue
+            # A child must leave its parent, not run back along it: its start may not be the
+            # parent's own start unless the parent is much longer.
+            cand.append((d, c.id, p.id))
+    root = {b.id: b.id for b in ok}
+
+    def find(x: int) -> int:
+        while root[x] != x:
+            root[x] = root[root[x]]
+            x = root[x]
+        return x
+
+    has_parent: set[int] = set()
+    for _d, c, p in sorted(cand):
+        if c in has_parent:
+            continue
+        rc, rp = find(c), find(p)
+        if rc == rp:
+            continue
+        root[rc] = rp
+        has_parent.add(c)
+        next(b for b in ok if b.id == c).parent = p
+
+
+def _summary(results: list[BranchResult]) -> dict[str, float]:
+    rps = [b.reprojection for b in results if b.ok and b.reprojection is not None]
+    # Rejected branches keep their points for the report picture but are not part of the tree.
+    if not rps:
+        return {}
+    px = np.concatenate([r.px for r in rps])
+    mm = np.concatenate([r.mm for r in rps])
+    return {"mean_px": float(px.mean()), "sd_px": float(px.std()), "max_px": float(px.max()),
+            "mean_mm": float(mm.mean()), "sd_mm": float(mm.std()), "max_mm": float(mm.max())}
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="branch", leave=False)
+
+
+def reconstruct(
+    run_a: XARun | str | os.PathLike,
+    run_b: XARun | str | os.PathLike,
+    *,
+    method: str = "nurbs",
+    frames: tuple[int, int] | None = None,
+    model: str | os.PathLike | None = None,
+    labels: tuple[Any, Any] | None = None,
+    objects: str | list[str] = "auto",
+    geometry_a: Any = None,
+    geometry_b: Any = None,
+    refine: bool = True,
+    solid: bool = True,
+    progress: bool = False,
+) -> Reconstruction:
+    """3D vessel tree from two X-ray angiography runs of the same vessels (the whole method).
+
+    Parameters
+    ----------
+    run_a, run_b : XARun or path
+        The two runs (DICOM XA files, frame folders, or loaded runs).
+    method : {"nurbs", "epipolar"}
+        3D centrelines by intersecting extruded NURBS surfaces in OCCT (the
+        paper's method), or by the point-wise epipolar baseline.
+    frames : (int, int), optional
+        Use this frame pair instead of the one motion phase matching picks
+        (its phase error is still reported).
+    model : path, optional
+        Segmentation model (ONNX); default: the bundled gated U-Net.
+    labels : (array, array), optional
+        Segmentation labels of every frame of each run (N, H, W) instead of
+        running the model (0 background, 1 vessel, 2 catheter, 3 balloon, 4 lead).
+    objects : 'auto', str or list of str
+        Stationary object(s) for phase matching: 'balloon', 'catheter', 'lead'.
+    geometry_a, geometry_b : dict, CArmView or path, optional
+        Geometry overrides per run (CArmView entries, or a view.json), e.g.
+        when an export lacks SID/SOD.
+    refine : bool
+        Refine the relative C-arm pose (small rotation of view B about the
+        isocentre and a table shift) by minimizing the reconstruction error of
+        the matched landmarks and branches; kept only if it clearly lowers
+        the error (``Reconstruction.refinement`` has before/after numbers).
+    solid : bool
+        Also build the fused OCCT solid.
+    progress : bool
+        Progress bars for the long stages.
+
+    Returns
+    -------
+    Reconstruction
+
+    Raises
+    ------
+    ArgumentError
+        Bad arguments (unknown method, labels of the wrong shape, frame pair out of range).
+    InputFileError, DicomError, MissingGeometryError
+        A run cannot be read.
+    ReconstructionError
+        A stage that every later stage needs failed (no stationary object, no
+        vessel, no matched branch); the message names the stage.
+    """
+    if method not in ("nurbs", "epipolar"):
+        raise ArgumentError(f"method: expected 'nurbs' or 'epipolar', got {method!r}")
+    timings: dict[str, float] = {}
+    warn: list[str] = []
+    t = time.perf_counter()
+    ra = _as_run(run_a, geometry_a, "run_a")
+    rb = _as_run(run_b, geometry_b, "run_b")
+    if frames is not None:
+        try:
+            fa, fb = (int(x) for x in frames)
+        except (TypeError, ValueError):
+            raise ArgumentError(f"frames: expected two frame indices, got {frames!r}") from None
+        if not (0 <= fa < ra.n_frames and 0 <= fb < rb.n_frames):
+            raise ArgumentError(f"frames: ({fa}, {fb}) is outside the runs' {ra.n_frames} and "
+                                f"{rb.n_frames} frames")
+        frames = (fa, fb)
+    timings["load"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    if labels is not None:
+        if not isinstance(labels, (tuple, list)) or len(labels) != 2:
+            raise ArgumentError("labels: expected a pair (labels of run A, labels of run B)")
+        la, lb = _check_labels(labels[0], ra, "labels[0]"), _check_labels(labels[1], rb, "labels[1]")
+    else:
+        from .segment import Segmenter
+
+        seg = Segmenter(model)
+        la = seg(ra.frames, progress=progress)
+        lb = seg(rb.frames, progress=progress)
+    timings["segmentation"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    try:
+        phase = match_phase(ra, rb, la, lb, objects=objects, pair=frames)
+    except VesselcadError as exc:
+        raise ReconstructionError(f"motion phase matching: {exc}. Pass frames=(i, j) (CLI: --frames I J) "
+                                  "to choose the frame pair yourself") from None
+    warn += [f"phase: {w}" for w in phase.warnings]
+    timings["phase"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    fa, fb = phase.frame_a, phase.frame_b
+    lab_a, lab_b = la[fa], lb[fb]
+    graphs = []
+    for lab, run, name in ((lab_a, ra, "A"), (lab_b, rb, "B")):
+        if not (lab == 1).any():
+            raise ReconstructionError(f"centreline graphs: no vessel pixels in frame "
+                                      f"{fa if name == 'A' else fb} of run {name} ({run.source or 'run'})")
+        with _warnings.catch_warnings(record=True) as caught:
+            _warnings.simplefilter("always", VesselcadWarning)
+            graphs.append(centreline_graph(lab == 1, run.view, labels=lab))
+        warn += [f"graph {name}: {w.message}" for w in caught]
+    ga, gb = graphs
+    timings["graphs"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    views = (ra.view, rb.view)
+    refinement = None
+    if refine:
+        kp = None
+        if phase.objects:
+            obj = phase.objects[0]
+            kp = (phase.keypoints_a[obj][fa], phase.keypoints_b[obj][fb])
+        refinement = refine_geometry(ra.view, ga, rb.view, gb, keypoints=kp)
+        if refinement.applied:
+            views = (refinement.view_a, refinement.view_b)
+        warn += [f"refinement: {w}" for w in refinement.warnings]
+    timings["refinement"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    match = match_graphs(views[0], ga, views[1], gb)
+    warn += [f"matching: {w}" for w in match.warnings]
+    timings["matching"] = time.perf_counter() - t
+    if not match.pairs:
+        raise ReconstructionError(
+            f"matching: no branch of view A could be paired with one of view B "
+            f"({len(ga.branches)} and {len(gb.branches)} branches, {len(match.landmark_pairs)} landmark "
+            "pairs); check the geometry (angles, SID/SOD) and the segmentation in report pictures")
+
+    t = time.perf_counter()
+    results = []
+    bar = _progress(len(match.pairs), "3D centrelines", progress)
+    for k, pair in enumerate(match.pairs):
+        results.append(_branch_3d(k, pair, views, method))
+        if bar is not None:
+            bar.update()
+    if bar is not None:
+        bar.close()
+    _link_parents(results)
+    timings["centrelines_3d"] = time.perf_counter() - t
+    for b in results:
+        if not b.ok:
+            warn.append(f"branch {b.id} (graph branches {b.pair.a}/{b.pair.b}): {b.status}")
+
+    t = time.perf_counter()
+    tree = None
+    ok = [b for b in results if b.ok]
+    if ok:
+        tree = VesselTree([TreeBranch(id=b.id, parent=b.parent, points=b.points_mm, radius=b.radius_mm,
+                                      name=f"branch_{b.id}", landmarks=b.pair.start, segments=(b.id,))
+                           for b in ok])
+    else:
+        warn.append("no branch could be reconstructed in 3D")
+    timings["tree"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    vsolid = None
+    if solid and tree is not None:
+        try:
+            vsolid = tree.solid(progress=progress)
+            for bid, why in vsolid.failed.items():
+                warn.append(f"solid: branch {bid} left out: {why}")
+        except Exception as exc:  # the centrelines are still worth having
+            warn.append(f"solid: could not be built ({type(exc).__name__}: {exc})")
+    timings["solid"] = time.perf_counter() - t
+
+    return Reconstruction(
+        tree=tree, solid=vsolid, phase=phase, graphs=(ga, gb), match=match, branches=results,
+        views=views, header_views=(ra.view, rb.view), refinement=refinement,
+        frames=(ra.frames[fa], rb.frames[fb]), labels=(lab_a, lab_b), errors=_summary(results),
+        timings=timings, warnings=warn, sources=(ra.source, rb.source),
+    )

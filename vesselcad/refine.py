@@ -1,0 +1,232 @@
+"""Refinement of the relative C-arm pose of two runs from matched landmarks and branches.
+
+Real DICOM angles are off by a degree or two, and the patient or table moves
+between two runs acquired a minute apart. Both show up as a reconstruction
+error (paper §2.3) that no frame pair can remove. :func:`refine_geometry`
+keeps view A as it is and corrects view B by a small rotation about the
+isocentre (primary and secondary angle) and a shift of its isocentre
+(``CArmView.offset_mm``), bounded, by robust least squares over:
+
+- matched landmark pairs (branch and end points): both 2D reprojection errors
+  of their triangulated position;
+- points along matched branch pairs: for samples of view A's piece, the
+  smallest reconstruction error against view B's piece (a curve has no
+  point-to-point correspondence, but its epipolar transfer must meet the
+  other view's curve);
+- optionally the stationary object's key point in both frames.
+
+Correspondences come from :func:`vesselcad.match_graphs` with relaxed
+tolerances, and are found again after each round. The result is kept only
+if it lowers the error clearly; before and after figures are reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from .centreline2d import CentrelineGraph
+from .errors import ArgumentError
+from .geometry import CArmView, reconstruction_error, triangulate
+from .matching import match_graphs
+from .splines import resample_by_arclength
+
+__all__ = ["Refinement", "refine_geometry"]
+
+#: Tolerances (px) used to find correspondences on the unrefined geometry.
+RELAXED_LANDMARK_TOL_PX = 8.0
+RELAXED_BRANCH_TOL_PX = 6.0
+
+
+@dataclass
+class Refinement:
+    """Result of :func:`refine_geometry`.
+
+    Attributes
+    ----------
+    applied : bool
+        True when the refined geometry is used (it lowered the error clearly).
+    view_a, view_b : CArmView
+        The views to use (the given ones when not applied).
+    rotation_deg : (float, float)
+        Correction of view B's primary and secondary angle.
+    offset_mm : numpy.ndarray, shape (3,)
+        Shift of view B's isocentre (LPS mm): table or patient motion.
+    before_px, after_px : float
+        Mean reconstruction error over the correspondences before and after.
+    landmarks, curve_points : int
+        Number of landmark pairs and branch samples used.
+    warnings : list of str
+    """
+
+    applied: bool
+    view_a: CArmView
+    view_b: CArmView
+    rotation_deg: tuple[float, float] = (0.0, 0.0)
+    offset_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    before_px: float = float("nan")
+    after_px: float = float("nan")
+    landmarks: int = 0
+    curve_points: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        def r(x: float) -> float | None:
+            return round(float(x), 4) if np.isfinite(x) else None
+
+        return {"applied": self.applied, "rotation_deg": [round(float(x), 4) for x in self.rotation_deg],
+                "offset_mm": np.round(self.offset_mm, 3).tolist(), "before_px": r(self.before_px),
+                "after_px": r(self.after_px), "landmarks": self.landmarks,
+                "curve_points": self.curve_points, "warnings": list(self.warnings)}
+
+
+def _moved(view: CArmView, p: np.ndarray) -> CArmView:
+    d = view.to_dict()
+    d["primary_deg"] = view.primary_deg + float(p[0])
+    d["secondary_deg"] = view.secondary_deg + float(p[1])
+    d["offset_mm"] = (np.asarray(view.offset_mm) + p[2:5]).tolist()
+    return CArmView.from_dict(d)
+
+
+def _correspondences(va: CArmView, ga: CentrelineGraph, vb: CArmView, gb: CentrelineGraph,
+                     relaxed: bool, step_px: float) -> tuple[np.ndarray, np.ndarray, list]:
+    kw = ({"landmark_tol_px": RELAXED_LANDMARK_TOL_PX, "branch_tol_px": RELAXED_BRANCH_TOL_PX}
+          if relaxed else {})
+    m = match_graphs(va, ga, vb, gb, **kw)
+    idx = m.landmark_indices
+    lm_a = ga.landmark_points[idx[:, 0]] if len(idx) else np.empty((0, 2))
+    lm_b = gb.landmark_points[idx[:, 1]] if len(idx) else np.empty((0, 2))
+    curves = []
+    for p in m.pairs:
+        a = resample_by_arclength(p.points_a_px, step_px)
+        b = resample_by_arclength(p.points_b_px, 1.0)
+        if len(a) >= 3 and len(b) >= 3:
+            curves.append((a[1:-1], b))
+    return lm_a, lm_b, curves
+
+
+def _residuals(va: CArmView, vb: CArmView, lm_a: np.ndarray, lm_b: np.ndarray, curves: list,
+               kp: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    parts = []
+    pa, pb = lm_a, lm_b
+    if kp is not None:
+        pa, pb = np.vstack([pa, kp[0][None]]), np.vstack([pb, kp[1][None]])
+    if len(pa):
+        X = triangulate(va, pa, vb, pb)
+        parts += [(va.project(X) - pa).ravel(), (vb.project(X) - pb).ravel()]
+    for a, b in curves:
+        e = reconstruction_error(va, a[:, None, :], vb, b[None, :, :]).error_px
+        parts.append(np.nanmin(np.nan_to_num(e, nan=1e3), axis=1))
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def _mean_error(va: CArmView, vb: CArmView, lm_a: np.ndarray, lm_b: np.ndarray, curves: list) -> float:
+    errs = []
+    if len(lm_a):
+        errs.append(reconstruction_error(va, lm_a, vb, lm_b).error_px)
+    for a, b in curves:
+        e = reconstruction_error(va, a[:, None, :], vb, b[None, :, :]).error_px
+        errs.append(np.nanmin(np.nan_to_num(e, nan=1e3), axis=1))
+    return float(np.mean(np.concatenate(errs))) if errs else float("nan")
+
+
+def refine_geometry(
+    view_a: CArmView,
+    graph_a: CentrelineGraph,
+    view_b: CArmView,
+    graph_b: CentrelineGraph,
+    *,
+    keypoints: tuple[Any, Any] | None = None,
+    max_rotation_deg: float = 3.0,
+    max_shift_mm: float = 10.0,
+    min_gain_px: float = 0.2,
+    min_error_px: float = 1.0,
+    prior: float = 0.2,
+    rounds: int = 2,
+) -> Refinement:
+    """Correct view B's pose relative to view A from the two centreline graphs.
+
+    Parameters
+    ----------
+    view_a, view_b : CArmView
+        The geometry from the files.
+    graph_a, graph_b : CentrelineGraph
+        Centreline graphs of the matched-phase frames.
+    keypoints : ((2,), (2,)), optional
+        A stationary object's key point (col, row) in frame A and frame B.
+    max_rotation_deg, max_shift_mm : float
+        Bounds of the angle corrections and of the isocentre shift.
+    min_gain_px : float
+        The refinement is applied only if it lowers the mean reconstruction
+        error by at least this much and by at least 20 %.
+    min_error_px : float
+        No refinement when the files' geometry already explains the
+        correspondences to this mean reconstruction error (px).
+    prior : float
+        Weight of the pull toward the files' geometry (per degree, per
+        ``max_shift_mm / max_rotation_deg`` mm, relative to the residuals' RMS).
+    rounds : int
+        Correspondences are found again after each round.
+
+    Returns
+    -------
+    Refinement
+    """
+    for v, name in ((view_a, "view_a"), (view_b, "view_b")):
+        if not isinstance(v, CArmView):
+            raise ArgumentError(f"{name}: expected a vesselcad.CArmView, got {type(v).__name__}")
+    for val, name in ((max_rotation_deg, "max_rotation_deg"), (max_shift_mm, "max_shift_mm")):
+        if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
+            raise ArgumentError(f"{name}: expected a positive number, got {val!r}")
+    kp = None
+    if keypoints is not None:
+        kp = (np.asarray(keypoints[0], float).reshape(2), np.asarray(keypoints[1], float).reshape(2))
+        if not (np.all(np.isfinite(kp[0])) and np.all(np.isfinite(kp[1]))):
+            kp = None
+    out = Refinement(applied=False, view_a=view_a, view_b=view_b)
+    step_px = 6.0
+    lm_a, lm_b, curves = _correspondences(view_a, graph_a, view_b, graph_b, True, step_px)
+    out.landmarks, out.curve_points = len(lm_a), int(sum(len(a) for a, _ in curves))
+    if len(lm_a) + out.curve_points < 8 or not curves:
+        out.warnings.append(f"too few correspondences to refine the geometry ({len(lm_a)} landmark pairs, "
+                            f"{out.curve_points} branch samples); the files' geometry is used")
+        return out
+    before = _mean_error(view_a, view_b, lm_a, lm_b, curves)
+    if before < min_error_px:
+        out.before_px = out.after_px = before
+        return out
+    lo = np.r_[-max_rotation_deg, -max_rotation_deg, [-max_shift_mm] * 3]
+    hi = -lo
+    p = np.zeros(5)
+    scale = np.r_[1.0, 1.0, [max_shift_mm / max_rotation_deg] * 3]
+    for _ in range(max(int(rounds), 1)):
+        def fun(q: np.ndarray, la=lm_a, lb=lm_b, cv=curves) -> np.ndarray:
+            r = _residuals(view_a, _moved(view_b, q), la, lb, cv, kp)
+            # A pull toward the files' geometry pins the directions the images cannot see (e.g.
+            # the baseline length) and keeps small motion differences from being fitted as pose.
+            return np.r_[r, prior * np.sqrt(len(r)) * q / scale]
+
+        sol = least_squares(fun, p, bounds=(lo, hi), loss="soft_l1", f_scale=2.0, x_scale=scale,
+                            diff_step=1e-4, max_nfev=60)
+        p = sol.x
+        lm_a, lm_b, curves = _correspondences(view_a, graph_a, _moved(view_b, p), graph_b, True, step_px)
+        if not curves:
+            break
+    vb = _moved(view_b, p)
+    # Compare on the same correspondences (found with the refined geometry).
+    after = _mean_error(view_a, vb, lm_a, lm_b, curves) if curves else float("inf")
+    before_same = _mean_error(view_a, view_b, lm_a, lm_b, curves) if curves else before
+    out.before_px, out.after_px = max(before, before_same), after
+    out.rotation_deg = (float(p[0]), float(p[1]))
+    out.offset_mm = p[2:5].copy()
+    out.landmarks, out.curve_points = len(lm_a), int(sum(len(a) for a, _ in curves))
+    if np.isfinite(after) and after <= 0.8 * out.before_px and out.before_px - after >= min_gain_px:
+        out.applied = True
+        out.view_b = vb
+    if np.any(np.isclose(np.abs(p), hi, rtol=0.02)):
+        out.warnings.append("a correction reached its bound (max_rotation_deg / max_shift_mm): the files' "
+                            "geometry may be further off than refinement allows")
+    return out

@@ -1,0 +1,335 @@
+"""Outputs of a reconstruction: CAD files, centrelines, report.json, pictures and report.html.
+
+``report.html`` is one self-contained file (no network): the two chosen frames
+with their segmentation, the matched 2D pieces and the reprojected 3D
+centrelines, the phase error matrix, the numbers, and an interactive 3D view of
+the tree drawn by a small WebGL viewer embedded in the page (mesh data inline).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .errors import OutputError
+from .io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+
+if TYPE_CHECKING:
+    from .pipeline import Reconstruction
+
+__all__ = ["write_outputs", "plot_overlays"]
+
+_PALETTE = np.array([[230, 25, 75], [60, 180, 75], [255, 225, 25], [0, 130, 200], [245, 130, 48],
+                     [145, 30, 180], [70, 240, 240], [240, 50, 230], [210, 245, 60], [250, 190, 212],
+                     [0, 128, 128], [220, 190, 255], [170, 110, 40], [255, 250, 200], [128, 0, 0]], np.uint8)
+
+
+def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
+    """Both chosen frames: segmentation, 2D pieces (thin) and reprojected 3D centrelines (bold).
+
+    Each branch has one colour in both views; written atomically as PNG.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .segment import overlay_labels
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6.8), dpi=100)
+    for k, ax in enumerate(axes):
+        frame, lab, view = rec.frames[k], rec.labels[k], rec.views[k]
+        ax.imshow(overlay_labels(frame, lab, alpha=0.25))
+        for b in rec.branches:
+            c = _PALETTE[b.id % len(_PALETTE)] / 255.0
+            piece = b.pair.points_a_px if k == 0 else b.pair.points_b_px
+            ax.plot(piece[:, 0], piece[:, 1], "-", color="white", lw=0.8, alpha=0.9)
+            if b.ok:
+                p = view.project(b.points_mm)
+                ax.plot(p[:, 0], p[:, 1], "-", color=c, lw=2.0)
+                ax.text(p[len(p) // 2, 0], p[len(p) // 2, 1], str(b.id), color=c, fontsize=8,
+                        fontweight="bold")
+            else:
+                ax.plot(piece[:, 0], piece[:, 1], ":", color="red", lw=1.5)
+        frame_no = rec.phase.frame_a if k == 0 else rec.phase.frame_b
+        v = rec.header_views[k]
+        ax.set_title(f"run {'AB'[k]}, frame {frame_no} ({v.primary_deg:+.1f}°, {v.secondary_deg:+.1f}°)",
+                     fontsize=10)
+        ax.set_axis_off()
+    e = rec.errors
+    fig.suptitle("segmentation (colours), matched 2D pieces (white), reprojected 3D centrelines (bold, "
+                 "numbered), failed branches (red dotted)"
+                 + (f"\nreprojection {e['mean_px']:.2f} ± {e['sd_px']:.2f} px "
+                    f"({e['mean_mm']:.3f} ± {e['sd_mm']:.3f} mm), max {e['max_px']:.2f} px" if e else ""),
+                 fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
+
+
+def _tube_mesh(rec: Reconstruction) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles of simple tubes around the centrelines (for the 3D view when there is no solid)."""
+    verts, faces, off = [], [], 0
+    n_around = 12
+    ang = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    for b in rec.ok_branches:
+        p, r = b.points_mm, b.radius_mm
+        t = np.gradient(p, axis=0)
+        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+        ref = np.where(np.abs(t[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+        n1 = np.cross(t, ref)
+        n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
+        n2 = np.cross(t, n1)
+        ring = p[:, None] + r[:, None, None] * (np.cos(ang)[None, :, None] * n1[:, None]
+                                                + np.sin(ang)[None, :, None] * n2[:, None])
+        m = len(p)
+        i = np.arange(m - 1)[:, None]
+        j = np.arange(n_around)[None, :]
+        a = off + i * n_around + j
+        bq = off + i * n_around + (j + 1) % n_around
+        f = np.stack([a, bq, a + n_around, bq, bq + n_around, a + n_around], axis=-1).reshape(-1, 3)
+        verts.append(ring.reshape(-1, 3))
+        faces.append(f)
+        off += m * n_around
+    if not verts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    return np.vstack(verts), np.vstack(faces)
+
+
+def _mesh_for_view(rec: Reconstruction) -> tuple[np.ndarray, np.ndarray, str]:
+    if rec.solid is not None:
+        try:
+            tm = rec.solid.to_trimesh(tolerance=0.05, angular_deflection=0.5)
+            return np.asarray(tm.vertices), np.asarray(tm.faces), "fused solid"
+        except Exception:  # fall back to tubes; the solid's own files report its state
+            pass
+    v, f = _tube_mesh(rec)
+    return v, f, "tubes around the centrelines (no solid)"
+
+
+def _b64(a: np.ndarray, dtype: str) -> str:
+    return base64.b64encode(np.ascontiguousarray(a, dtype=dtype).tobytes()).decode("ascii")
+
+
+def _png_b64(path: Path) -> str:
+    return base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+_VIEWER_JS = r"""
+(function () {
+  const cv = document.getElementById('view3d');
+  const gl = cv.getContext('webgl');
+  const status = document.getElementById('view3d-status');
+  if (!gl) { status.textContent = 'WebGL is not available in this browser'; return; }
+  function dec(id, T) {
+    const s = atob(document.getElementById(id).textContent.trim());
+    const u = new Uint8Array(s.length);
+    for (let i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
+    return new T(u.buffer);
+  }
+  const P = dec('mesh-vertices', Float32Array), F = dec('mesh-faces', Uint32Array);
+  const L = dec('lines-vertices', Float32Array);
+  const nv = P.length / 3;
+  let c = [0, 0, 0], lo = [1e9, 1e9, 1e9], hi = [-1e9, -1e9, -1e9];
+  const all = P.length ? P : L;
+  for (let i = 0; i < all.length; i += 3) for (let k = 0; k < 3; k++) {
+    lo[k] = Math.min(lo[k], all[i + k]); hi[k] = Math.max(hi[k], all[i + k]); }
+  for (let k = 0; k < 3; k++) c[k] = 0.5 * (lo[k] + hi[k]);
+  const R = 0.5 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) || 1;
+  const N = new Float32Array(P.length);
+  for (let i = 0; i < F.length; i += 3) {
+    const a = 3 * F[i], b = 3 * F[i + 1], d = 3 * F[i + 2];
+    const u = [P[b] - P[a], P[b + 1] - P[a + 1], P[b + 2] - P[a + 2]];
+    const v = [P[d] - P[a], P[d + 1] - P[a + 1], P[d + 2] - P[a + 2]];
+    const n = [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]];
+    for (const j of [a, b, d]) for (let k = 0; k < 3; k++) N[j + k] += n[k];
+  }
+  function sh(type, src) { const s = gl.createShader(type); gl.shaderSource(s, src); gl.compileShader(s);
+    if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s)); return s; }
+  function prog(vs, fs) { const p = gl.createProgram(); gl.attachShader(p, sh(gl.VERTEX_SHADER, vs));
+    gl.attachShader(p, sh(gl.FRAGMENT_SHADER, fs)); gl.linkProgram(p); return p; }
+  const pm = prog('attribute vec3 p; attribute vec3 n; uniform mat4 M; uniform mat3 Q; varying vec3 vn;' +
+    'void main(){ vn = Q * n; gl_Position = M * vec4(p, 1.0); }',
+    'precision mediump float; varying vec3 vn; void main(){ vec3 n = normalize(vn);' +
+    'float l = 0.25 + 0.75 * abs(dot(n, normalize(vec3(0.3, 0.5, 1.0))));' +
+    'gl_FragColor = vec4(vec3(0.85, 0.25, 0.22) * l, 1.0); }');
+  const pl = prog('attribute vec3 p; uniform mat4 M; void main(){ gl_Position = M * vec4(p, 1.0); }',
+    'precision mediump float; void main(){ gl_FragColor = vec4(0.1, 0.2, 0.9, 1.0); }');
+  function attr(p, name, b) { const a = gl.getAttribLocation(p, name); gl.bindBuffer(gl.ARRAY_BUFFER, b);
+    gl.enableVertexAttribArray(a); gl.vertexAttribPointer(a, 3, gl.FLOAT, false, 0, 0); return a; }
+  function buf(data, target) { const b = gl.createBuffer(); gl.bindBuffer(target, b);
+    gl.bufferData(target, data, gl.STATIC_DRAW); return b; }
+  const bp = buf(P, gl.ARRAY_BUFFER), bn = buf(N, gl.ARRAY_BUFFER), bl = buf(L, gl.ARRAY_BUFFER);
+  const ext = gl.getExtension('OES_element_index_uint');
+  const bf = buf(ext ? F : new Uint16Array(F), gl.ELEMENT_ARRAY_BUFFER);
+  let yaw = 0.6, pitch = -0.4, zoom = 1.0, drag = null;
+  cv.addEventListener('mousedown', e => { drag = [e.clientX, e.clientY]; });
+  window.addEventListener('mouseup', () => { drag = null; });
+  window.addEventListener('mousemove', e => { if (!drag) return;
+    yaw += 0.01 * (e.clientX - drag[0]); pitch += 0.01 * (e.clientY - drag[1]);
+    drag = [e.clientX, e.clientY]; draw(); });
+  cv.addEventListener('wheel', e => { e.preventDefault(); zoom *= Math.exp(0.001 * e.deltaY); draw(); });
+  function draw() {
+    const cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
+    // LPS: look from the patient's front (anterior, -y) with the head (+z) up.
+    const rot = [cy, 0, -sy, sy * sp, cp, cy * sp, sy * cp, -sp, cy * cp];  // yaw then pitch
+    const base = [1, 0, 0, 0, 0, 1, 0, -1, 0];  // x->x, z->up, -y->toward the viewer
+    const Q = new Array(9).fill(0);
+    for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) for (let k = 0; k < 3; k++)
+      Q[3 * i + j] += rot[3 * i + k] * base[3 * k + j];
+    const s = 1.0 / (R * zoom), asp = cv.width / cv.height;
+    const M = new Float32Array(16);
+    for (let i = 0; i < 3; i++) {
+      const sc = i === 0 ? s / asp : s, t = -(Q[3 * i] * c[0] + Q[3 * i + 1] * c[1] + Q[3 * i + 2] * c[2]);
+      M[i] = Q[3 * i] * sc; M[4 + i] = Q[3 * i + 1] * sc; M[8 + i] = Q[3 * i + 2] * sc;
+      M[12 + i] = t * sc;
+    }
+    M[2] *= -0.5; M[6] *= -0.5; M[10] *= -0.5; M[14] *= -0.5; M[15] = 1;
+    const Qt = new Float32Array([Q[0], Q[3], Q[6], Q[1], Q[4], Q[7], Q[2], Q[5], Q[8]]);
+    gl.viewport(0, 0, cv.width, cv.height); gl.clearColor(1, 1, 1, 1);
+    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT); gl.enable(gl.DEPTH_TEST);
+    if (F.length) {
+      gl.useProgram(pm);
+      gl.uniformMatrix4fv(gl.getUniformLocation(pm, 'M'), false, M);
+      gl.uniformMatrix3fv(gl.getUniformLocation(pm, 'Q'), false, Qt);
+      attr(pm, 'p', bp);
+      const an = attr(pm, 'n', bn);
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, bf);
+      gl.drawElements(gl.TRIANGLES, F.length, ext ? gl.UNSIGNED_INT : gl.UNSIGNED_SHORT, 0);
+      gl.disableVertexAttribArray(an);
+    }
+    if (L.length) {
+      gl.useProgram(pl); gl.disable(gl.DEPTH_TEST);
+      gl.uniformMatrix4fv(gl.getUniformLocation(pl, 'M'), false, M);
+      attr(pl, 'p', bl);
+      gl.drawArrays(gl.LINES, 0, L.length / 3);
+    }
+  }
+  draw();
+  status.textContent = nv + ' vertices, ' + (F.length / 3) + ' triangles; drag to rotate, wheel to zoom';
+  cv.dataset.rendered = 'true';
+})();
+"""
+
+
+def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_png: Path,
+          verts: np.ndarray, faces: np.ndarray, mesh_kind: str) -> str:
+    lines = []
+    for b in rec.ok_branches:
+        p = b.points_mm
+        lines.append(np.stack([p[:-1], p[1:]], axis=1).reshape(-1, 3))
+    lv = np.vstack(lines) if lines else np.zeros((0, 3))
+    e = rec.errors
+    rows = []
+    for b in report["branches"]:
+        rp, rm = b["reprojection_px"], b["reprojection_mm"]
+        length = "" if b["length_mm"] is None else f"{b['length_mm']:.1f}"
+        px = "" if rp is None else f"{rp['mean']:.2f} / {rp['max']:.2f}"
+        mm = "" if rm is None else f"{rm['mean']:.3f}"
+        parent = "" if b["parent"] is None else str(b["parent"])
+        ga, gb = b["graph_branches"]
+        rows.append(f"<tr><td>{b['id']}</td><td>{ga} / {gb}</td><td>{parent}</td><td>{length}</td>"
+                    f"<td>{px}</td><td>{mm}</td><td>{html.escape(b['status'])}</td></tr>")
+    ref = report["refinement"]
+    ref_txt = "off" if ref is None else (
+        f"{'applied' if ref['applied'] else 'not applied'}: reconstruction error {ref['before_px']} px → "
+        f"{ref['after_px']} px over {ref['landmarks']} landmark pairs and {ref['curve_points']} branch "
+        "samples; "
+        f"view B rotated {ref['rotation_deg']}°, isocentre shifted {ref['offset_mm']} mm")
+    solid = report["solid"]
+    solid_txt = "not built" if solid is None else (
+        f"valid {solid['valid']}, watertight {solid['watertight']}, volume {solid['volume_mm3']:.1f} mm³"
+        + (f", left out: {html.escape(json.dumps(solid['failed']))}" if solid["failed"] else ""))
+    warn = "".join(f"<li>{html.escape(w)}</li>" for w in rec.warnings) or "<li>none</li>"
+    timing = ", ".join(f"{k} {v:.2f} s" for k, v in report["timings_s"].items())
+    rep_txt = (f"{e['mean_px']:.2f} ± {e['sd_px']:.2f} px, max {e['max_px']:.2f} px "
+               f"({e['mean_mm']:.3f} ± {e['sd_mm']:.3f} mm, max {e['max_mm']:.3f} mm)" if e else "n/a")
+    ph = rec.phase
+    srcs = " and ".join(html.escape(s or "(in memory)") for s in rec.sources)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>vesselcad reconstruction</title>
+<style>
+body {{ font-family: system-ui, sans-serif; margin: 1.5em; color: #222; max-width: 1350px; }}
+table {{ border-collapse: collapse; font-size: 0.9em; }}
+td, th {{ border: 1px solid #ccc; padding: 2px 8px; }}
+img {{ max-width: 100%; }} #view3d {{ border: 1px solid #aaa; cursor: grab; }}
+.grid {{ display: flex; gap: 1.5em; flex-wrap: wrap; align-items: flex-start; }}
+</style></head><body>
+<h1>vesselcad reconstruction</h1>
+<p>Runs: {srcs}. Chosen frames: <b>A {ph.frame_a}</b>, <b>B {ph.frame_b}</b> by
+{html.escape(', '.join(ph.objects) or 'given pair')} (phase error {ph.error_mm:.3f} mm, confidence
+{ph.confidence:.2f}). Branches reconstructed: <b>{len(rec.ok_branches)} of {len(rec.branches)}</b>
+matched pairs ({len(rec.graphs[0].branches)} and {len(rec.graphs[1].branches)} branches in the 2D graphs).
+Reprojection error: <b>{rep_txt}</b>. Solid: {solid_txt}. Geometry refinement: {ref_txt}.</p>
+<h2>Chosen frames</h2>
+<img id="overlay" alt="chosen frames with segmentation and reprojected centrelines"
+ src="data:image/png;base64,{_png_b64(overlay_png)}">
+<div class="grid">
+<div><h2>3D tree</h2>
+<canvas id="view3d" width="640" height="520"></canvas>
+<div id="view3d-status">loading…</div><div>Shown: {html.escape(mesh_kind)} (red), centrelines (blue).
+LPS frame, seen from the front, head up.</div></div>
+<div><h2>Motion phase</h2>
+<img id="phase" alt="phase error matrix" src="data:image/png;base64,{_png_b64(phase_png)}" width="560"></div>
+</div>
+<h2>Branches</h2>
+<table><tr><th>id</th><th>2D branches A / B</th><th>parent</th><th>length mm</th>
+<th>reprojection px mean / max</th><th>mm mean</th><th>status</th></tr>
+{''.join(rows)}</table>
+<h2>Warnings</h2><ul>{warn}</ul>
+<p>Timings: {timing}. vesselcad {html.escape(report['vesselcad'])}.</p>
+<script type="application/octet-stream" id="mesh-vertices">{_b64(verts, '<f4')}</script>
+<script type="application/octet-stream" id="mesh-faces">{_b64(faces, '<u4')}</script>
+<script type="application/octet-stream" id="lines-vertices">{_b64(lv, '<f4')}</script>
+<script>{_VIEWER_JS}</script>
+</body></html>
+"""
+
+
+def write_outputs(rec: Reconstruction, out: Path, *, html: bool = True, progress: bool = False
+                  ) -> dict[str, Path]:
+    """Write every output of a reconstruction into the folder ``out`` (see :meth:`Reconstruction.write`)."""
+    from .phase import plot_error_matrix
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the output folder ({exc})") from None
+    t0 = time.perf_counter()
+    paths: dict[str, Path] = {}
+    if rec.tree is not None:
+        paths["centrelines.json"] = out / "centrelines.json"
+        rec.tree.to_json(paths["centrelines.json"])
+        paths["centrelines.vtp"] = out / "centrelines.vtp"
+        rec.tree.to_vtp(paths["centrelines.vtp"])
+    if rec.solid is not None:
+        for name, fn in (("tree.step", rec.solid.export_step), ("tree.stl", rec.solid.export_stl),
+                         ("tree.glb", rec.solid.export_glb)):
+            try:
+                fn(out / name)
+                paths[name] = out / name
+            except Exception as exc:  # one output never loses the others
+                rec.warnings.append(f"{name}: could not be written ({type(exc).__name__}: {exc})")
+    paths["overlay.png"] = plot_overlays(rec, out / "overlay.png")
+    paths["phase.png"] = plot_error_matrix(rec.phase, out / "phase.png",
+                                           title=f"chosen frames ({rec.phase.frame_a}, {rec.phase.frame_b})")
+    rec.timings["write"] = time.perf_counter() - t0
+    report = rec.report()
+    report["files"] = sorted([*paths, "report.json"] + (["report.html"] if html else []))
+    if html:
+        verts, faces, kind = _mesh_for_view(rec)
+        paths["report.html"] = out / "report.html"
+        atomic_write_text(paths["report.html"], _html(rec, report, paths["overlay.png"], paths["phase.png"],
+                                                      verts, faces, kind))
+    paths["report.json"] = out / "report.json"
+    atomic_write_bytes(paths["report.json"], (json.dumps(report, indent=1) + "\n").encode())
+    return paths
