@@ -320,6 +320,7 @@ def _link_parents(results: list[BranchResult]) -> None:
     if not ok:
         return
     trees = {b.id: cKDTree(b.points_mm) for b in ok}
+    by_id = {b.id: b for b in ok}
     cand = []
     for c in ok:
         start = c.points_mm[0]
@@ -333,8 +334,6 @@ def _link_parents(results: list[BranchResult]) -> None:
                 d = min(d, 0.0)
             elif d > tol:
                 continue
-            # A child must leave its parent, not run back along it: its start may not be the
-            # parent's own start unless the parent is much longer.
             cand.append((d, c.id, p.id))
     root = {b.id: b.id for b in ok}
 
@@ -353,12 +352,12 @@ def _link_parents(results: list[BranchResult]) -> None:
             continue
         root[rc] = rp
         has_parent.add(c)
-        next(b for b in ok if b.id == c).parent = p
+        by_id[c].parent = p
 
 
 def _summary(results: list[BranchResult]) -> dict[str, float]:
-    rps = [b.reprojection for b in results if b.ok and b.reprojection is not None]
     # Rejected branches keep their points for the report picture but are not part of the tree.
+    rps = [b.reprojection for b in results if b.ok and b.reprojection is not None]
     if not rps:
         return {}
     px = np.concatenate([r.px for r in rps])
