@@ -6,6 +6,7 @@ file formats and the command line.
 
 from __future__ import annotations
 
+from .batch import BatchCase, BatchResult, find_cases, run_batch
 from .centreline2d import Branch2D, CentrelineGraph, Crossing, Landmark, centreline_graph
 from .centreline3d import intersect_centrelines
 from .errors import (
@@ -46,6 +47,10 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'vesselcad' has no attribute {name!r}")
 
 __all__ = [
+    "run_batch",
+    "find_cases",
+    "BatchCase",
+    "BatchResult",
     "CArmView",
     "Reconstruction2View",
     "XARun",

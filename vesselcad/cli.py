@@ -86,6 +86,26 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0 if rec.tree is not None else 3
 
 
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from .batch import run_batch
+
+    args.frames = None
+    opts = {k: v for k, v in _reconstruct_args(args).items() if k not in ("frames", "progress")}
+    res = run_batch(args.input, args.out, jobs=args.jobs, force=args.force, scheduler=args.scheduler,
+                    html=not args.no_html, progress=not args.quiet, **opts)
+    if args.json:
+        failed = [{k: r.get(k) for k in ("case", "status", "message")} for r in res.failed]
+        print(json.dumps({"out": str(res.out), "seconds": round(res.seconds, 2), "counts": res.counts,
+                          "failed": failed}))
+    elif not args.quiet:
+        print(f"{len(res.cases)} cases in {res.seconds:.1f} s: " + ", ".join(
+            f"{v} {k}" for k, v in res.counts.items() if v))
+        for r in res.failed:
+            print(f"  {r['case']}: {r['status']}: {r.get('message', '')}")
+        print(f"summary: {res.out / 'summary.csv'}, {res.out / 'summary.json'}")
+    return 4 if res.failed else 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .io import atomic_write_text
     from .phantom import generate_case, write_case
@@ -265,11 +285,12 @@ def _parser() -> argparse.ArgumentParser:
     inf.add_argument("--json", action="store_true", help="print one JSON object")
     inf.set_defaults(func=_cmd_info)
 
-    def recon_options(q: argparse.ArgumentParser, pair_flag: str = "--frames") -> None:
+    def recon_options(q: argparse.ArgumentParser, pair_flag: str | None = "--frames") -> None:
         q.add_argument("--method", choices=["nurbs", "epipolar"], default="nurbs",
                        help="3D centrelines by NURBS surface intersection (default) or the epipolar baseline")
-        q.add_argument(pair_flag, dest="frames", type=int, nargs=2, metavar=("I", "J"),
-                       help="use frame I of run A and frame J of run B instead of phase matching")
+        if pair_flag:
+            q.add_argument(pair_flag, dest="frames", type=int, nargs=2, metavar=("I", "J"),
+                           help="use frame I of run A and frame J of run B instead of phase matching")
         q.add_argument("--model", metavar="ONNX", help="segmentation model (default: the bundled one)")
         q.add_argument("--objects", default="auto",
                        help="stationary object for phase matching: auto, balloon, catheter or lead")
@@ -289,6 +310,20 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument("--geometry-b", metavar="VIEW_JSON", help="the same for run B only")
     recon_options(rc)
     rc.set_defaults(func=_cmd_reconstruct)
+
+    ba = sub.add_parser("batch", help="many cases (a folder of case folders or a CSV manifest), in "
+                        "parallel, resumable; one failure never stops the rest")
+    ba.add_argument("input", metavar="INPUT",
+                    help="folder of case folders (two runs each) or CSV manifest (case,run_a,run_b"
+                    "[,geometry,geometry_a,geometry_b,frame_a,frame_b])")
+    ba.add_argument("--out", required=True, help="output folder: one sub-folder per case, summary.csv/.json")
+    ba.add_argument("--jobs", "-j", type=int, default=1, help="worker processes (default 1)")
+    ba.add_argument("--force", action="store_true", help="re-run cases that finished before")
+    ba.add_argument("--scheduler", metavar="ADDRESS",
+                    help="run on this Dask distributed scheduler (e.g. tcp://host:8786) instead of local "
+                    "processes; workers must see INPUT and --out at the same paths")
+    recon_options(ba, pair_flag=None)  # frame pairs per case: manifest columns frame_a, frame_b
+    ba.set_defaults(func=_cmd_batch)
 
     de = sub.add_parser("demo", help="generate a phantom case and reconstruct it end to end")
     de.add_argument("--out", default="vesselcad-demo", help="output folder (default vesselcad-demo)")

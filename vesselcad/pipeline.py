@@ -30,6 +30,7 @@ from .matching import BranchPair, GraphMatch, match_graphs
 from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
 from .phase import PhaseMatch, match_phase
 from .refine import Refinement, refine_geometry
+from .segment import Segmenter
 from .tree import TreeBranch, VesselTree
 
 __all__ = ["BranchResult", "Reconstruction", "ReconstructionError", "reconstruct"]
@@ -380,7 +381,7 @@ def reconstruct(
     *,
     method: str = "nurbs",
     frames: tuple[int, int] | None = None,
-    model: str | os.PathLike | None = None,
+    model: str | os.PathLike | Segmenter | None = None,
     labels: tuple[Any, Any] | None = None,
     objects: str | list[str] = "auto",
     geometry_a: Any = None,
@@ -401,8 +402,9 @@ def reconstruct(
     frames : (int, int), optional
         Use this frame pair instead of the one motion phase matching picks
         (its phase error is still reported).
-    model : path, optional
-        Segmentation model (ONNX); default: the bundled gated U-Net.
+    model : path or Segmenter, optional
+        Segmentation model (ONNX), or a loaded ``Segmenter`` to reuse across
+        calls; default: the bundled gated U-Net.
     labels : (array, array), optional
         Segmentation labels of every frame of each run (N, H, W) instead of
         running the model (0 background, 1 vessel, 2 catheter, 3 balloon, 4 lead).
@@ -459,9 +461,7 @@ def reconstruct(
             raise ArgumentError("labels: expected a pair (labels of run A, labels of run B)")
         la, lb = _check_labels(labels[0], ra, "labels[0]"), _check_labels(labels[1], rb, "labels[1]")
     else:
-        from .segment import Segmenter
-
-        seg = Segmenter(model)
+        seg = model if isinstance(model, Segmenter) else Segmenter(model)
         la = seg(ra.frames, progress=progress)
         lb = seg(rb.frames, progress=progress)
     timings["segmentation"] = time.perf_counter() - t
