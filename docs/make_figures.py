@@ -4,6 +4,8 @@
 - phantom_preview.png: the contact sheet of ``vesselcad phantom --preview``.
 - phantom_vs_real.png: phantom frames next to real angiograms (CIMAT, ARCADE).
 - centreline_graph_real.png: centreline graphs of real manual vessel masks (CIMAT).
+- report_html.png: ``vesselcad demo``'s report.html as headless Chromium shows it (offline);
+  only with ``--report`` (needs Chromium and playwright, as tests/test_report_browser.py).
 """
 
 from __future__ import annotations
@@ -138,9 +140,25 @@ def centreline_graph_real(path: Path) -> None:
     plt.close(fig)
 
 
+def report_screenshot(path: Path) -> None:
+    sys.path.insert(0, str(HERE.parent / "tests"))
+    from browser import visit_report
+
+    from vesselcad.cli import main as cli
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cli(["demo", "--out", tmp, "--quiet"])
+        visit = visit_report(Path(tmp) / "report.html", page_png=path)
+    if not visit.rendered or visit.errors:
+        raise RuntimeError(f"report.html did not render cleanly: {visit.errors or visit.status}")
+
+
 def main() -> int:
     out = HERE / "img"
     out.mkdir(exist_ok=True)
+    if "--report" in sys.argv[1:]:
+        report_screenshot(out / "report_html.png")
+        return 0
     geometry_figure(out / "geometry.png")
     with tempfile.TemporaryDirectory() as tmp:
         paths = write_case(generate_case(1, "cs", n_frames=40), tmp, preview=True)
