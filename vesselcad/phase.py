@@ -102,6 +102,9 @@ class PhaseMatch:
     point_mm : numpy.ndarray, shape (3,)
         The triangulated key point of the (first) object at the chosen pair.
     warnings : list of str
+    fill_a, fill_b : numpy.ndarray
+        Vessel area of every frame as a share of the run's largest (contrast
+        filling; all ones when the labels have no vessel class).
     """
 
     frame_a: int
@@ -121,6 +124,8 @@ class PhaseMatch:
     confidence: float
     point_mm: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    fill_a: np.ndarray | None = None
+    fill_b: np.ndarray | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary (without the matrix)."""
@@ -135,6 +140,8 @@ class PhaseMatch:
             "confidence": round(self.confidence, 4),
             "eligible_frames_a": int(self.eligible_a.sum()), "eligible_frames_b": int(self.eligible_b.sum()),
             "point_mm": np.round(self.point_mm, 3).tolist(),
+            "fill": None if self.fill_a is None else [round(float(self.fill_a[self.frame_a]), 3),
+                                                      round(float(self.fill_b[self.frame_b]), 3)],
             "warnings": list(self.warnings),
         }
 
@@ -370,11 +377,12 @@ def diagonal_mean(matrix: np.ndarray, window: int) -> np.ndarray:
     return np.where((valid.sum(axis=0) >= window + 1) & np.isfinite(matrix), out, np.nan)
 
 
-def _contrast_eligible(labels: np.ndarray, share: float) -> np.ndarray:
-    area = (labels == _VESSEL).sum(axis=(1, 2))
+def _fill(labels: np.ndarray) -> np.ndarray:
+    """Vessel area per frame as a share of the run's largest (1 everywhere without vessels)."""
+    area = (labels == _VESSEL).sum(axis=(1, 2)).astype(float)
     if area.max() == 0:
-        return np.ones(labels.shape[0], bool)  # no vessel class: nothing to restrict on
-    return area >= share * area.max()
+        return np.ones(labels.shape[0])  # no vessel class: nothing to restrict on
+    return area / area.max()
 
 
 def match_phase(
@@ -385,6 +393,7 @@ def match_phase(
     *,
     objects: str | Sequence[str] = "auto",
     min_contrast: float = 0.5,
+    prefer_fill: float = 0.9,
     use_ecg: bool = True,
     ecg_tolerance: float = 0.08,
     pair: tuple[int, int] | None = None,
@@ -405,6 +414,12 @@ def match_phase(
     min_contrast : float
         Only frames whose vessel area is at least this share of the run's
         largest are eligible, so the chosen pair shows filled vessels (0: all).
+    prefer_fill : float
+        When some eligible pair has key points and both frames at least this
+        share of the run's largest vessel area, only such pairs are considered:
+        a frame in wash-in or wash-out can keep 60-85 % of the area while a
+        whole proximal or distal part is empty, and a vessel missing in one
+        view cannot be reconstructed (1 or above: off).
     use_ecg : bool
         When both runs carry ECG R-waves (RWavePointer), only pairs whose ECG
         cardiac phases differ by at most ``ecg_tolerance`` (cycle fraction)
@@ -441,6 +456,8 @@ def match_phase(
     window = min(int(window), (min(run_a.n_frames, run_b.n_frames) - 1) // 2)
     if not 0.0 <= min_contrast <= 1.0:
         raise ArgumentError(f"min_contrast: expected a share in [0, 1], got {min_contrast}")
+    if not prefer_fill >= 0.0:
+        raise ArgumentError(f"prefer_fill: expected a share >= 0, got {prefer_fill}")
     if objects == "auto":
         wanted = list(OBJECTS)
     elif isinstance(objects, str):
@@ -476,8 +493,13 @@ def match_phase(
     matrix = mats[0] if len(mats) == 1 else np.max(np.stack(mats), axis=0)
 
     score = diagonal_mean(matrix, window)
-    elig_a, elig_b = _contrast_eligible(la, min_contrast), _contrast_eligible(lb, min_contrast)
+    fill_a, fill_b = _fill(la), _fill(lb)
+    elig_a, elig_b = fill_a >= min_contrast, fill_b >= min_contrast
     allowed = elig_a[:, None] & elig_b[None, :] & np.isfinite(score)
+    full_a, full_b = fill_a >= prefer_fill, fill_b >= prefer_fill
+    if prefer_fill <= 1.0 and (allowed & full_a[:, None] & full_b[None, :]).any():
+        elig_a, elig_b = elig_a & full_a, elig_b & full_b
+        allowed &= full_a[:, None] & full_b[None, :]
     if use_ecg:
         pa, pb = ecg_phase(run_a), ecg_phase(run_b)
         if pa is not None and pb is not None:
@@ -526,6 +548,7 @@ def match_phase(
         keypoints_b={o: t.points_px for o, t in tracks_b.items()},
         eligible_a=elig_a, eligible_b=elig_b, runner_up=runner, runner_up_error_mm=runner_err,
         margin_mm=margin, confidence=confidence, point_mm=np.asarray(rec.points_mm), warnings=warnings_,
+        fill_a=fill_a, fill_b=fill_b,
     )
 
 
