@@ -9,6 +9,7 @@ is compared with those analytic curves, never with the code's own output.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -181,3 +182,22 @@ def test_bad_arguments_are_named():
     empty = np.zeros_like(la)
     with pytest.raises(ReconstructionError, match="phase"):
         reconstruct(ra, rb, labels=(empty, empty))
+
+
+def test_runs_that_cannot_give_a_tree_say_why(tmp_path, capsys):
+    # A real XA cine (no SID/SOD/spacing in its header) given twice, then as two "runs" only
+    # 8 degrees apart: both stop before any work with the reason, exit code 3.
+    cine = Path(__file__).parent / "data" / "dicom" / "xa_catheter_12frames_jpeg_lossless.dcm"
+    geo = tmp_path / "view.json"
+    geo.write_text(json.dumps({"sid_mm": 1000.0, "sod_mm": 750.0, "pixel_spacing_mm": [0.3, 0.3]}))
+    assert main(["reconstruct", str(cine), str(cine), "--geometry", str(geo), "--out", str(tmp_path / "o"),
+                 "--quiet"]) == 3
+    assert "same acquisition" in capsys.readouterr().err
+    run_a = vc.load_run(cine, geometry=geo)
+    run_b = vc.load_run(cine, geometry={**json.loads(geo.read_text()), "primary_deg": 85.0})
+    run_b.series_uid = "1.2.826.0.1.3680043.2.1"  # another series at nearly the same angles
+    with pytest.raises(ReconstructionError, match=r"\+77.0 deg.*\+85.0 deg.*only [0-9.]+ deg apart"):
+        reconstruct(run_a, run_b)
+    (ra, la), (rb, lb) = run_of(VIEW_A), run_of(vc.CArmView(**{**VIEW_A.to_dict(), "primary_deg": 50.0}))
+    rec = reconstruct(ra, rb, labels=(la, lb), solid=False, refine=False)  # 20 degrees: a warning
+    assert any("only 20.0 deg apart" in w for w in rec.warnings)

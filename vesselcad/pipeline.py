@@ -214,6 +214,34 @@ class Reconstruction:
         return write_outputs(self, Path(out), html=html, progress=progress)
 
 
+#: Views closer than this (angle between the viewing directions) cannot be reconstructed;
+#: below ``_WEAK_DEG`` depth is poorly conditioned (the paper's pairs are >= 30 deg apart).
+_MIN_VIEW_DEG, _WEAK_DEG = 15.0, 25.0
+
+
+def _check_pair(ra: XARun, rb: XARun, warn: list[str]) -> None:
+    """Stop early, with the reason, on pairs of runs that cannot give a tree."""
+    va, vb = ra.view, rb.view
+    cos = float(np.clip(np.dot(va.detector_direction, vb.detector_direction), -1.0, 1.0))
+    angle = float(np.degrees(np.arccos(abs(cos))))
+    same = ra.series_uid and ra.series_uid == rb.series_uid
+    views = (f"run A ({va.primary_deg:+.1f} deg, {va.secondary_deg:+.1f} deg) and run B "
+             f"({vb.primary_deg:+.1f} deg, {vb.secondary_deg:+.1f} deg)")
+    if same and ra.frames.shape == rb.frames.shape and np.array_equal(ra.frames, rb.frames):
+        raise ReconstructionError(f"runs: run A and run B are the same acquisition (SeriesInstanceUID "
+                                  f"{ra.series_uid}); give two runs taken at two C-arm angles")
+    if angle < _MIN_VIEW_DEG:
+        raise ReconstructionError(
+            f"views: {views} look along directions only {angle:.1f} deg apart; two-view reconstruction "
+            f"needs C-arm angles at least {_MIN_VIEW_DEG:.0f} deg (better {_WEAK_DEG:.0f}+) apart. If the "
+            "headers are wrong, give --geometry-a/-b")
+    if angle < _WEAK_DEG:
+        warn.append(f"views: {views} are only {angle:.1f} deg apart; depth along the shared direction is "
+                    "poorly determined")
+    if ra.patient_id and rb.patient_id and ra.patient_id != rb.patient_id:
+        warn.append(f"runs: different PatientID in run A ({ra.patient_id!r}) and run B ({rb.patient_id!r})")
+
+
 def _version() -> str:
     from . import __version__
 
@@ -453,6 +481,7 @@ def reconstruct(
             raise ArgumentError(f"frames: ({fa}, {fb}) is outside the runs' {ra.n_frames} and "
                                 f"{rb.n_frames} frames")
         frames = (fa, fb)
+    _check_pair(ra, rb, warn)
     timings["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
