@@ -226,6 +226,7 @@ class VesselSolid:
     timings_s: dict[str, float] = field(default_factory=dict)
     specs: list[dict[str, Any]] = field(default_factory=list, repr=False)
     extensions: dict[tuple[int, str], float] = field(default_factory=dict)
+    _meshed: tuple[float, float] | None = field(default=None, init=False, repr=False)
 
     # ------------------------------------------------------------ measures
     @property
@@ -366,10 +367,14 @@ class VesselSolid:
         if not (linear_deflection > 0 and angular_deflection > 0):
             raise ArgumentError("linear_deflection, angular_deflection: expected positive numbers, got "
                                 f"{linear_deflection!r}, {angular_deflection!r}")
+        key = (float(linear_deflection), float(angular_deflection))
+        if self._meshed == key:  # STL and GLB of one solid share one triangulation
+            return key[0]
         # Drop any earlier triangulation: OCCT keeps an existing one if it is finer.
         BRepTools.Clean_s(self.shape)
-        BRepMesh_IncrementalMesh(self.shape, float(linear_deflection), False, float(angular_deflection), True)
-        return float(linear_deflection)
+        BRepMesh_IncrementalMesh(self.shape, key[0], False, key[1], True)
+        self._meshed = key
+        return key[0]
 
     def to_trimesh(self, tolerance: float | None = None, angular_deflection: float = 0.3) -> Any:
         """Triangulate the solid into a ``trimesh.Trimesh`` (vertices merged across faces).
