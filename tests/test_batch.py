@@ -141,18 +141,13 @@ def test_bad_batch_inputs(tmp_path, archive):
     with pytest.raises(vc.InputFileError, match="no case folders"):
         find_cases(tmp_path / "empty")
     m = tmp_path / "m.csv"
-    m.write_text("id,run_a\nx,a.dcm\n")
-    with pytest.raises(vc.ArgumentError, match="run_b"):
-        find_cases(m)
-    m.write_text("id,run_a,run_b\nx,a.dcm,b.dcm\nx,c.dcm,d.dcm\n")
-    with pytest.raises(vc.ArgumentError, match="'x' appears twice"):
-        find_cases(m)
-    m.write_text("id,run_a,run_b\n../evil,a.dcm,b.dcm\n")
-    with pytest.raises(vc.ArgumentError, match="folder name"):
-        find_cases(m)
-    m.write_text("id,run_a,run_b,geometry_a\nx,a.dcm,b.dcm,{oops\n")
-    with pytest.raises(vc.ArgumentError, match="line 2.*geometry_a"):
-        find_cases(m)
+    for text, message in (("id,run_a\nx,a.dcm\n", "run_b"),
+                          ("id,run_a,run_b\nx,a.dcm,b.dcm\nx,c.dcm,d.dcm\n", "'x' appears twice"),
+                          ("id,run_a,run_b\n../evil,a.dcm,b.dcm\n", "folder name"),
+                          ("id,run_a,run_b,geometry_a\nx,a.dcm,b.dcm,{oops\n", "line 2.*geometry_a")):
+        m.write_text(text)
+        with pytest.raises(vc.ArgumentError, match=message):
+            find_cases(m)
     with pytest.raises(vc.ArgumentError, match="jobs"):
         run_batch(archive, tmp_path / "o", jobs=0)
     with pytest.raises(vc.ArgumentError, match="labels"):
