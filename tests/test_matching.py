@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from analytic_tree import RADIUS_MM, TREE
 
 import vesselcad as vc
 
@@ -13,15 +14,6 @@ VIEW_A = vc.CArmView(primary_deg=30.0, secondary_deg=0.0, sid_mm=1100.0, sod_mm=
 VIEW_B = vc.CArmView(primary_deg=-30.0, secondary_deg=25.0, sid_mm=1100.0, sod_mm=750.0,
                      pixel_spacing_mm=(0.4, 0.4), rows=512, cols=512)
 
-# A 3D tree (LPS mm): name -> (parent, control points); children start on their parent's end.
-TREE = {
-    "trunk": (None, [(-30, 0, 45), (-18, 4, 30), (0, 5, 12)]),
-    "left": ("trunk", [(0, 5, 12), (-15, 8, -8), (-28, 12, -32)]),
-    "right": ("trunk", [(0, 5, 12), (12, 2, -2), (22, 0, -16)]),
-    "right_a": ("right", [(22, 0, -16), (36, -4, -18), (50, -6, -26)]),
-    "right_b": ("right", [(22, 0, -16), (20, 6, -34), (14, 10, -52)]),
-}
-RADIUS_MM = {"trunk": 2.0, "left": 1.4, "right": 1.6, "right_a": 1.2, "right_b": 1.2}
 
 
 def curve(ctrl, n=200):

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from analytic_tree import RADIUS_MM, TREE
 from scipy.spatial import cKDTree
 
 import vesselcad as vc
@@ -24,14 +25,6 @@ VIEW_A = vc.CArmView(primary_deg=30.0, secondary_deg=0.0, sid_mm=1100.0, sod_mm=
                      pixel_spacing_mm=(0.4, 0.4), rows=384, cols=384)
 VIEW_B = vc.CArmView(primary_deg=-30.0, secondary_deg=25.0, sid_mm=1100.0, sod_mm=750.0,
                      pixel_spacing_mm=(0.4, 0.4), rows=384, cols=384)
-TREE = {
-    "trunk": (None, [(-30, 0, 45), (-18, 4, 30), (0, 5, 12)]),
-    "left": ("trunk", [(0, 5, 12), (-15, 8, -8), (-28, 12, -32)]),
-    "right": ("trunk", [(0, 5, 12), (12, 2, -2), (22, 0, -16)]),
-    "right_a": ("right", [(22, 0, -16), (36, -4, -18), (50, -6, -26)]),
-    "right_b": ("right", [(22, 0, -16), (20, 6, -34), (14, 10, -52)]),
-}
-RADIUS_MM = {"trunk": 2.0, "left": 1.4, "right": 1.6, "right_a": 1.2, "right_b": 1.2}
 CATHETER = [(-30, 0, 45), (-40, -4, 70), (-45, -8, 110)]
 
 
