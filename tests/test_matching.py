@@ -22,12 +22,15 @@ def curve(ctrl, n=200):
     return (1 - t) ** 2 * c[0] + 2 * (1 - t) * t * c[1] + t ** 2 * c[2]  # quadratic Bezier
 
 
-def render(view, skip=()):
+def render(view, skip=(), cut=None):
+    """Mask of the tree in ``view``; ``cut`` maps a branch name to the share of it drawn."""
     mask = np.zeros((view.rows, view.cols), np.uint8)
     for name, (_, ctrl) in TREE.items():
         if name in skip:
             continue
         p = view.project(curve(ctrl))
+        if cut and name in cut:
+            p = p[: int(len(p) * cut[name])]
         r_px = RADIUS_MM[name] * view.magnification / view.pixel_spacing_mm[0]
         cv2.polylines(mask, [np.round(p * 16).astype(np.int32)], False, 1, int(round(2 * r_px)),
                       cv2.LINE_8, shift=4)
@@ -121,6 +124,36 @@ def test_side_branch_hidden_in_one_view_is_reported():
     # The B branch through the missing branch point is paired in two pieces.
     bs = [b for _, b in m.branch_pairs]
     assert max(bs.count(b) for b in set(bs)) == 2
+
+
+def test_vessel_cut_short_in_one_view_is_paired_as_far_as_both_see_it():
+    # View B sees only the proximal 55 % of the left branch (say, the rest is hidden): its end
+    # there has no partner in view A, yet the part both views show is still paired and the rest
+    # of view A's branch is reported with its arc-length range.
+    ga = vc.centreline_graph(render(VIEW_A), VIEW_A)
+    gb = vc.centreline_graph(render(VIEW_B, cut={"left": 0.55}), VIEW_B)
+    left3d = curve(TREE["left"][1], 800)
+    end_a = VIEW_A.project(left3d[-1])
+    ka = min(range(len(ga.branches)),
+             key=lambda k: np.min(np.linalg.norm(ga.branches[k].points_px[[0, -1]] - end_a, axis=1)))
+    m = vc.match_graphs(VIEW_A, ga, VIEW_B, gb)
+    pieces = [p for p in m.pairs if p.a == ka]
+    assert len(pieces) == 1
+    p = pieces[0]
+    x = vc.triangulate(VIEW_A, p.points_a_px, VIEW_B, p.points_b_px)
+    d = np.min(np.linalg.norm(x[:, None] - left3d[None], axis=-1), axis=1)
+    assert np.median(d) < 1.0 and d.max() < 3.0  # on the left branch in 3D
+    # Covers the left branch from the junction to where view B stops (55 % of its length).
+    s3d = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(left3d, axis=0), axis=1))]
+    reach = s3d[np.argmin(np.linalg.norm(left3d - x[-1], axis=1))] / s3d[-1]
+    start = s3d[np.argmin(np.linalg.norm(left3d - x[0], axis=1))] / s3d[-1]
+    assert start < 0.1 and 0.45 < reach < 0.6
+    rest = [u for u in m.unmatched if u.view == "a" and u.kind == "branch" and u.index == ka]
+    assert len(rest) == 1 and "stops agreeing" in rest[0].reason
+    length = ga.branches[ka].length_px
+    lo, hi = sorted(rest[0].range)
+    assert lo < 0.05 * length or hi > 0.95 * length  # at the distal end of the branch
+    assert 0.35 < (hi - lo) / length < 0.6
 
 
 def test_bad_input():

@@ -6,11 +6,15 @@ of one view and a branch (or a chain of branches through branch points) of
 the other whose end landmarks agree are aligned sample by sample by a
 monotone (ordering-preserving) dynamic-programming path through the matrix of
 reconstruction errors of their samples, with the 3D length of the path as a
-tie-break where a vessel runs along an epipolar line. Candidates are accepted
-greedily by paired length times agreement, each landmark paired at most once
-and each branch used once, so the topology of both trees is respected without
-asking them to be identical: a chain paired with one branch marks a branch
-point seen in one view only (its side branch hidden or too short in the
+tie-break where a vessel runs along an epipolar line. Where only one end
+agrees (the other cut by an overlap, hidden, or seen as a branch point in one
+view only) the pair is anchored at that end and aligned as far as the two
+curves agree (a local alignment). Among all candidates, the consistent set of
+largest total gain (paired length times agreement) is chosen by a small
+integer program: each landmark paired at most once and each branch used once,
+so the topology of both trees is respected without asking them to be
+identical: a chain paired with one branch marks a branch point seen in one
+view only (its side branch hidden or too short in the
 other). Whatever is not paired is returned with its reason.
 
 See docs/centreline2d.md.
@@ -50,6 +54,15 @@ STEP_PX = 2.0
 MAX_CHAIN = 3
 #: Gain factor per extra branch in a chain (prefers direct branch-to-branch pairs).
 CHAIN_FACTOR = 0.9
+#: Gain factor of a pair anchored at one end only (prefers pairs whose both ends agree).
+OPEN_FACTOR = 0.8
+#: An open-ended alignment runs on while the reconstruction error stays below this share of
+#: ``branch_tol_px``.
+OPEN_TAU = 0.5
+#: Longest chain of branches in an open-ended pair.
+OPEN_MAX_CHAIN = 1
+#: Shortest open-ended pair (px along each view).
+MIN_OPEN_PX = 16.0
 
 
 @dataclass
@@ -321,11 +334,14 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     with its own (reconstruction error within ``LANDMARK_TOL_PX`` plus the
     mean radius). Each candidate is scored by aligning its samples with a
     monotone path through their matrix of reconstruction errors (with a
-    shortest-3D-curve tie-break). Candidates are then accepted greedily by
-    paired length times agreement, keeping every landmark paired with at most
-    one landmark and every branch used once, so the result respects the
-    topology of both trees; a chain matched to one branch marks a branch point
-    seen in one view only.
+    shortest-3D-curve tie-break). A branch whose far end has no agreeing
+    partner is also paired from its agreeing end for as long as the two curves
+    agree (error below half of ``branch_tol_px``). The consistent set of
+    candidates with the largest total paired length times agreement is then
+    chosen (an integer program solved with HiGHS): every landmark is paired
+    with at most one landmark and every branch used once, so the result
+    respects the topology of both trees; a chain matched to one branch marks
+    a branch point seen in one view only.
 
     Parameters
     ----------
@@ -371,8 +387,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     rb_px = np.array([lm.radius_px for lm in gb.landmarks])
     kind_a = np.array([lm.kind for lm in ga.landmarks])
     kind_b = np.array([lm.kind for lm in gb.landmarks])
-    ok_lm = (lm_err <= landmark_tol_px + 0.5 * (ra_px[:, None] + rb_px[None, :])) & (
-        kind_a[:, None] == kind_b[None, :])
+    ok_lm = (lm_err <= landmark_tol_px + 0.5 * (ra_px[:, None] + rb_px[None, :]))
+    ok_lm &= kind_a[:, None] == kind_b[None, :]
 
     arcs_a = [arc_length(b.points_px) for b in ga.branches]
     arcs_b = [arc_length(b.points_px) for b in gb.branches]
@@ -386,7 +402,7 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     shape_ok = single_a[:, None] | single_b[None, :]
     fwd = ok_lm[ua][:, ub] & ok_lm[va_][:, vb_] & shape_ok
     bwd = ok_lm[ua][:, vb_] & ok_lm[va_][:, ub] & shape_ok
-    cands = []
+    cands: list[_Cand] = []
     for (i, j), flip in [(ij, False) for ij in zip(*np.nonzero(fwd), strict=False)] + [
             (ij, True) for ij in zip(*np.nonzero(bwd), strict=False)]:
         pa, pb = paths_a[i], paths_b[j]
@@ -399,46 +415,23 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
             continue
         extra = len(pa.edges) + len(pb.edges) - 2
         gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra)
-        cands.append((gain, cost, pa, pb, D))
-    cands.sort(key=lambda c: -c[0])
+        cands.append(_Cand.closed(gain, cost, pa, pb, D))
+    cands += _open_candidates(view_a, view_b, paths_a, paths_b, ok_lm, branch_tol_px)
+    cands.sort(key=lambda c: -c.gain)
 
-    map_ab: dict[int, int] = {}
-    map_ba: dict[int, int] = {}
-    only_a: set[int] = set()  # branch points seen in view A only
-    only_b: set[int] = set()
-    used_a: set[int] = set()
-    used_b: set[int] = set()
-    accepted = []
-    for _, cost, pa, pb, D in cands:
-        if used_a & set(pa.edges) or used_b & set(pb.edges):
-            continue
-        ok = True
-        for x, y in ((pa.nodes[0], pb.nodes[0]), (pa.nodes[-1], pb.nodes[-1])):
-            if map_ab.get(x, y) != y or map_ba.get(y, x) != x or x in only_a or y in only_b:
-                ok = False
-        inner_a, inner_b = pa.nodes[1:-1], pb.nodes[1:-1]
-        if any(n in map_ab for n in inner_a) or any(n in map_ba for n in inner_b):
-            ok = False
-        if not ok:
-            continue
-        for x, y in ((pa.nodes[0], pb.nodes[0]), (pa.nodes[-1], pb.nodes[-1])):
-            map_ab[x], map_ba[y] = y, x
-        only_a.update(inner_a)
-        only_b.update(inner_b)
-        used_a.update(pa.edges)
-        used_b.update(pb.edges)
-        accepted.append((cost, pa, pb, D))
+    accepted, map_ab, map_ba, only_a, only_b, used_a, used_b = _select(cands)
 
     # Orientation: proximal first, by view A's tree (depth from the root).
     depth_a = _depths(ga)
     pairs: list[BranchPair] = []
     mm_a = float(np.mean(view_a.mm_per_px))
     mm_b = float(np.mean(view_b.mm_per_px))
-    for cost, pa, pb, D in accepted:
-        if depth_a.get(pa.nodes[0], 0) > depth_a.get(pa.nodes[-1], 0):
-            pa, pb = pa.reversed(), pb.reversed()
-            D = None
-        pairs.extend(_pieces(view_a, view_b, ga, gb, pa, pb, cost, mm_a, mm_b, D))
+    for c in accepted:
+        pieces = _pieces(view_a, view_b, ga, gb, c, mm_a, mm_b)
+        far = c.pa.nodes[len(c.edges_a)]
+        if depth_a.get(c.pa.nodes[0], 0) > depth_a.get(far, 0):
+            pieces = [_flip(q) for q in pieces[::-1]]
+        pairs.extend(pieces)
     order = {id(p): k for k, p in enumerate(pairs)}
     pairs.sort(key=lambda p: (depth_a.get(p.start[0], 0) if p.start[0] is not None else 1e9, order[id(p)]))
 
@@ -458,12 +451,20 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
             else:
                 why = f"no landmark of view {other} agrees with it on a consistent branch"
             unmatched.append(Unmatched(tag, "landmark", lm.index, why))
+        covered: dict[int, list[tuple[float, float]]] = {}
+        for p in pairs:
+            covered.setdefault(p.a if tag == "a" else p.b, []).append(p.a_range if tag == "a" else p.b_range)
         for b in g.branches:
             if b.index not in used:
                 unmatched.append(Unmatched(tag, "branch", b.index, (
                     f"no branch of view {other} between matching landmarks agrees with it "
                     f"(hidden, foreshortened, overlapping or not segmented in view {other})"),
                     (0.0, float(b.length_px))))
+                continue
+            for lo, hi in _gaps(covered.get(b.index, []), float(b.length_px)):
+                unmatched.append(Unmatched(tag, "branch", b.index, (
+                    f"this part has no partner: view {other} stops agreeing with it (the vessel ends, "
+                    f"is hidden or overlaps another vessel there in view {other})"), (lo, hi)))
     roots = (ga.root, map_ab.get(ga.root) if ga.root is not None else None)
     warnings_ = []
     if ga.root is not None and gb.root is not None and map_ab.get(ga.root) not in (None, gb.root):
@@ -471,21 +472,222 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     return GraphMatch(lmm, pairs, unmatched, roots, warnings_)
 
 
-def _pieces(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph, pa: _Path, pb: _Path,
-            cost: float, mm_a: float, mm_b: float, D: np.ndarray | None) -> list[BranchPair]:
-    """Cut a matched chain pair at every node of either chain into per-branch pieces."""
-    if D is None:
-        _, D = _compare(va, vb, pa, pb)
-    pi, pj = backtrack(D)
+@dataclass
+class _Cand:
+    """A candidate pairing of a path of view A with a path of view B."""
+
+    gain: float
+    cost: float
+    pa: _Path
+    pb: _Path
+    D: np.ndarray  # accumulated alignment cost
+    end: tuple[int, int]  # last aligned samples (i, j)
+    ends: list[tuple[int, int]]  # landmark pairs it asserts
+    inner_a: list[int]  # landmarks it passes through (seen in one view only)
+    inner_b: list[int]
+    edges_a: list[int]  # branches it uses
+    edges_b: list[int]
+
+    @classmethod
+    def closed(cls, gain: float, cost: float, pa: _Path, pb: _Path, D: np.ndarray) -> _Cand:
+        return cls(gain, cost, pa, pb, D, (len(pa.s) - 1, len(pb.s) - 1),
+                   [(pa.nodes[0], pb.nodes[0]), (pa.nodes[-1], pb.nodes[-1])],
+                   pa.nodes[1:-1], pb.nodes[1:-1], list(pa.edges), list(pb.edges))
+
+
+def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: list[_Path],
+                     ok_lm: np.ndarray, tol: float) -> list[_Cand]:
+    """Pairs anchored at one agreeing landmark whose far end is free.
+
+    A vessel end cut by an overlap, a branch point seen in one view only or a
+    vessel that leaves the field in one view leaves the far end without a
+    partner. The path of one view is then aligned with a prefix of the other
+    (or a prefix of it with all of the other): a local alignment whose step
+    cost is the reconstruction error minus ``OPEN_TAU * tol``, so that it runs
+    as long as the two curves agree.
+    """
+    all_a = [q for p in paths_a if len(p.edges) <= OPEN_MAX_CHAIN for q in (p, p.reversed())]
+    all_b = [q for p in paths_b if len(p.edges) <= OPEN_MAX_CHAIN for q in (p, p.reversed())]
+    first_a = np.array([p.nodes[0] for p in all_a])
+    first_b = np.array([p.nodes[0] for p in all_b])
+    single_a = np.array([len(p.edges) == 1 for p in all_a])
+    single_b = np.array([len(p.edges) == 1 for p in all_b])
+    ok = ok_lm[first_a][:, first_b] & (single_a[:, None] | single_b[None, :])
+    ii, jj = np.nonzero(ok)
+    if len(ii) == 0:
+        return []
+    # Quick test on the first MIN_OPEN_PX of both paths (all pairs at once): each sample of one
+    # must have a partner in the other within tau on average, or no alignment can start.
+    k = int(np.ceil(MIN_OPEN_PX / STEP_PX)) + 1
+    head = lambda ps: np.stack([p.pts[np.minimum(np.arange(k), len(p.pts) - 1)] for p in ps])  # noqa: E731
+    ha, hb = head(all_a), head(all_b)
+    E0 = np.nan_to_num(reconstruction_error(va, ha[ii][:, :, None, :], vb, hb[jj][:, None, :, :]).error_px,
+                       nan=CAP_PX)
+    tau = OPEN_TAU * tol
+    keep = (E0.min(axis=2).mean(axis=1) <= tau) & (E0.min(axis=1).mean(axis=1) <= tau)
+    out: list[_Cand] = []
+    seen: dict[tuple, int] = {}
+    for i, j in zip(ii[keep], jj[keep], strict=True):
+        pa, pb = all_a[i], all_b[j]
+        if pa.nodes[0] == pa.nodes[-1] or pb.nodes[0] == pb.nodes[-1]:
+            continue
+        rec = reconstruction_error(va, pa.pts[:, None, :], vb, pb.pts[None, :, :])
+        E = np.minimum(np.nan_to_num(rec.error_px, nan=CAP_PX), CAP_PX)
+        X = np.nan_to_num(rec.points_mm, nan=1e6)
+        D = _dtw(E - tau, X)
+        n, m = D.shape
+        last = np.r_[D[-1, :], D[:, -1]]
+        k = int(np.argmin(last))
+        ie, je = (n - 1, k) if k < m else (k - m, m - 1)
+        if ie == n - 1 and je == m - 1:
+            continue  # a whole-path alignment: a closed candidate where its ends agree
+        if min(pa.s[ie], pb.s[je]) < MIN_OPEN_PX:
+            continue
+        pi, pj = backtrack(D[: ie + 1, : je + 1])
+        cost = float(np.mean(E[pi, pj]))
+        if cost > tol:
+            continue
+        ka = int(np.searchsorted(pa.bounds, pa.s[ie], side="left"))  # edges used: 0 .. ka-1
+        kb = int(np.searchsorted(pb.bounds, pb.s[je], side="left"))
+        ka, kb = max(ka, 1), max(kb, 1)
+        extra = ka + kb - 2
+        gain = (min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * (CHAIN_FACTOR ** extra) * OPEN_FACTOR)
+        cand = _Cand(gain, cost, pa, pb, D, (ie, je), [(pa.nodes[0], pb.nodes[0])],
+                     pa.nodes[1:ka], pb.nodes[1:kb], list(pa.edges[:ka]), list(pb.edges[:kb]))
+        # Longer paths that share the aligned prefix give the same pair: keep the best.
+        key = (pa.nodes[0], pb.nodes[0], tuple(cand.edges_a), tuple(cand.edges_b),
+               tuple(pa.rev[:ka]), tuple(pb.rev[:kb]))
+        if key not in seen:
+            seen[key] = len(out)
+            out.append(cand)
+        elif gain > out[seen[key]].gain:
+            out[seen[key]] = cand
+    return out
+
+
+def _select_greedy(cands: list[_Cand]) -> tuple:
+    """Accept candidates in order, skipping any that conflicts with those already taken."""
+    map_ab: dict[int, int] = {}
+    map_ba: dict[int, int] = {}
+    only_a: set[int] = set()  # branch points seen in view A only
+    only_b: set[int] = set()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    accepted = []
+    for c in cands:
+        if used_a & set(c.edges_a) or used_b & set(c.edges_b):
+            continue
+        if any(map_ab.get(x, y) != y or map_ba.get(y, x) != x or x in only_a or y in only_b
+               for x, y in c.ends):
+            continue
+        if any(n in map_ab for n in c.inner_a) or any(n in map_ba for n in c.inner_b):
+            continue
+        for x, y in c.ends:
+            map_ab[x], map_ba[y] = y, x
+        only_a.update(c.inner_a)
+        only_b.update(c.inner_b)
+        used_a.update(c.edges_a)
+        used_b.update(c.edges_b)
+        accepted.append(c)
+    return accepted, map_ab, map_ba, only_a, only_b, used_a, used_b
+
+
+def _select(cands: list[_Cand]) -> tuple:
+    """The consistent set of candidates of largest total gain (a small integer program).
+
+    Binary variables: one per candidate and one per landmark pair that some
+    candidate asserts. A candidate needs its landmark pairs; every landmark is
+    paired at most once and a landmark a candidate passes through (a branch
+    point seen in one view only) is not paired at all; every branch is used by
+    at most one candidate. Solved with HiGHS (scipy.optimize.milp); should it
+    find no solution in time, candidates are taken greedily by gain.
+    """
+    from scipy import sparse
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
+    if not cands:
+        return [], {}, {}, set(), set(), set(), set()
+    pairs: dict[tuple[int, int], int] = {}
+    for c in cands:
+        for xy in c.ends:
+            pairs.setdefault(xy, len(pairs))
+    nc, npair = len(cands), len(pairs)
+    rows: list[int] = []
+    cols: list[int] = []
+    vals: list[float] = []
+    ub: list[float] = []
+
+    def row(entries: list[tuple[int, float]], hi: float) -> None:
+        r = len(ub)
+        for j, v in entries:
+            rows.append(r)
+            cols.append(j)
+            vals.append(v)
+        ub.append(hi)
+
+    groups: dict[tuple[str, int], list[tuple[int, float]]] = {}
+    for k, c in enumerate(cands):
+        for xy in c.ends:
+            row([(k, 1.0), (nc + pairs[xy], -1.0)], 0.0)
+        for tag, items in (("ea", c.edges_a), ("eb", c.edges_b), ("na", c.inner_a), ("nb", c.inner_b)):
+            for e in items:
+                groups.setdefault((tag, e), []).append((k, 1.0))
+    for (x, y), j in pairs.items():
+        groups.setdefault(("na", x), []).append((nc + j, 1.0))
+        groups.setdefault(("nb", y), []).append((nc + j, 1.0))
+    for entries in groups.values():
+        if len(entries) > 1:
+            row(entries, 1.0)
+    A = sparse.csr_array((vals, (rows, cols)), shape=(len(ub), nc + npair))
+    cost = np.r_[-np.array([c.gain for c in cands]), np.full(npair, 1e-6)]
+    res = milp(cost, constraints=LinearConstraint(A, -np.inf, np.array(ub)), integrality=np.ones(nc + npair),
+               bounds=Bounds(0, 1), options={"time_limit": 2.0})
+    if res.x is None:
+        return _select_greedy(cands)
+    chosen = [cands[k] for k in np.flatnonzero(res.x[:nc] > 0.5)]
+    chosen.sort(key=lambda c: -c.gain)
+    return _select_greedy(chosen)
+
+
+def _gaps(ranges: list[tuple[float, float]], length: float) -> list[tuple[float, float]]:
+    """Parts of [0, length] longer than two sample steps that no range covers."""
+    out, at = [], 0.0
+    for lo, hi in sorted(ranges):
+        if lo - at > 2.0 * STEP_PX:
+            out.append((at, lo))
+        at = max(at, hi)
+    if length - at > 2.0 * STEP_PX:
+        out.append((at, length))
+    return out
+
+
+def _flip(p: BranchPair) -> BranchPair:
+    """The same pair walked the other way."""
+    return BranchPair(
+        a=p.a, b=p.b, a_range=p.a_range, b_range=p.b_range, reversed_a=not p.reversed_a,
+        reversed_b=not p.reversed_b, start=p.end, end=p.start, points_a_px=p.points_a_px[::-1].copy(),
+        points_b_px=p.points_b_px[::-1].copy(), radius_a_px=p.radius_a_px[::-1].copy(),
+        radius_b_px=p.radius_b_px[::-1].copy(), radius_mm=p.radius_mm, error_px=p.error_px,
+        error_mm=p.error_mm)
+
+
+def _pieces(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph, c: _Cand,
+            mm_a: float, mm_b: float) -> list[BranchPair]:
+    """Cut a matched path pair at every node of either path into per-branch pieces."""
+    pa, pb = c.pa, c.pb
+    ie, je = c.end
+    pi, pj = backtrack(c.D[: ie + 1, : je + 1])
     sa, sb = pa.s[pi], pb.s[pj]
-    # Cut positions in both chains' arc length.
+    la, lb = float(pa.s[ie]), float(pb.s[je])
+    closed = len(c.ends) == 2
+    # Cut positions in both paths' arc length.
     cuts = [(0.0, 0.0, pa.nodes[0], pb.nodes[0])]
     inner = [(float(x), float(np.interp(x, sa, sb)), n, None)
-             for x, n in zip(pa.bounds[1:-1], pa.nodes[1:-1], strict=True)]
+             for x, n in zip(pa.bounds[1:-1], pa.nodes[1:-1], strict=True) if x < la - 1e-6]
     inner += [(float(np.interp(y, sb, sa)), float(y), None, n)
-              for y, n in zip(pb.bounds[1:-1], pb.nodes[1:-1], strict=True)]
+              for y, n in zip(pb.bounds[1:-1], pb.nodes[1:-1], strict=True) if y < lb - 1e-6]
     cuts += sorted(inner)
-    cuts.append((pa.length, pb.length, pa.nodes[-1], pb.nodes[-1]))
+    cuts.append((la, lb, pa.nodes[-1] if closed else None, pb.nodes[-1] if closed else None))
     out = []
     for (a0, b0, na0, nb0), (a1, b1, na1, nb1) in zip(cuts[:-1], cuts[1:], strict=False):
         if a1 - a0 < 1e-6 or b1 - b0 < 1e-6:
@@ -500,7 +702,7 @@ def _pieces(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph
             reversed_b=pb.rev[kb], start=(na0, nb0), end=(na1, nb1), points_a_px=pts_a, points_b_px=pts_b,
             radius_a_px=r_a, radius_b_px=r_b,
             radius_mm=float(np.median(np.concatenate([r_a * mm_a, r_b * mm_b]))),
-            error_px=cost, error_mm=cost * 0.5 * (mm_a + mm_b)))
+            error_px=c.cost, error_mm=c.cost * 0.5 * (mm_a + mm_b)))
     return out
 
 
