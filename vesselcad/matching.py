@@ -59,6 +59,8 @@ OPEN_FACTOR = 0.8
 #: An open-ended alignment runs on while the reconstruction error stays below this share of
 #: ``branch_tol_px``.
 OPEN_TAU = 0.5
+#: Width (log of the radius ratio) of the gain factor for radius agreement between the views.
+RADIUS_SIGMA = 0.5
 #: Longest chain of branches in an open-ended pair.
 OPEN_MAX_CHAIN = 1
 #: Shortest open-ended pair (px along each view).
@@ -215,6 +217,7 @@ class _Path:
     s: np.ndarray  # (n,) arc length of the samples along the chain
     bounds: np.ndarray  # arc length at each node (len(nodes),)
     arcs: list[np.ndarray]  # own arc-length of each branch (branch point order)
+    radius: np.ndarray  # (n,) radius (px) at the samples
 
     @property
     def length(self) -> float:
@@ -223,24 +226,27 @@ class _Path:
     def reversed(self) -> _Path:
         L = self.length
         return _Path(self.nodes[::-1], self.edges[::-1], [not r for r in self.rev[::-1]],
-                     self.pts[::-1].copy(), L - self.s[::-1], L - self.bounds[::-1], self.arcs[::-1])
+                     self.pts[::-1].copy(), L - self.s[::-1], L - self.bounds[::-1], self.arcs[::-1],
+                     self.radius[::-1].copy())
 
 
 def _chain(graph: CentrelineGraph, arcs: list[np.ndarray], nodes: list[int], edges: list[int],
            rev: list[bool]) -> _Path:
-    parts, bounds = [], [0.0]
+    parts, radii, bounds = [], [], [0.0]
     for k, r in zip(edges, rev, strict=False):
-        p = graph.branches[k].points_px
-        parts.append(p[::-1] if r else p)
+        br = graph.branches[k]
+        parts.append(br.points_px[::-1] if r else br.points_px)
+        radii.append(br.radius_px[::-1] if r else br.radius_px)
         bounds.append(bounds[-1] + float(arcs[k][-1]))
     pts = np.concatenate([parts[0]] + [q[1:] for q in parts[1:]])
+    rad = np.concatenate([radii[0]] + [q[1:] for q in radii[1:]])
     arc = arc_length(pts)
     total = float(arc[-1])
     n = max(int(np.ceil(total / STEP_PX)) + 1, 3)
     s = np.linspace(0.0, total, n)
     samp = np.stack([np.interp(s, arc, pts[:, 0]), np.interp(s, arc, pts[:, 1])], axis=1)
     b = np.asarray(bounds) * (total / max(bounds[-1], 1e-12))
-    return _Path(nodes, edges, rev, samp, s, b, [arcs[k] for k in edges])
+    return _Path(nodes, edges, rev, samp, s, b, [arcs[k] for k in edges], np.interp(s, arc, rad))
 
 
 def _enumerate_paths(graph: CentrelineGraph, arcs: list[np.ndarray], max_edges: int) -> list[_Path]:
@@ -402,6 +408,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     shape_ok = single_a[:, None] | single_b[None, :]
     fwd = ok_lm[ua][:, ub] & ok_lm[va_][:, vb_] & shape_ok
     bwd = ok_lm[ua][:, vb_] & ok_lm[va_][:, ub] & shape_ok
+    mm_a = float(np.mean(view_a.mm_per_px))
+    mm_b = float(np.mean(view_b.mm_per_px))
     cands: list[_Cand] = []
     for (i, j), flip in [(ij, False) for ij in zip(*np.nonzero(fwd), strict=False)] + [
             (ij, True) for ij in zip(*np.nonzero(bwd), strict=False)]:
@@ -415,8 +423,10 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
             continue
         extra = len(pa.edges) + len(pb.edges) - 2
         gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra)
-        cands.append(_Cand.closed(gain, cost, pa, pb, D))
-    cands += _open_candidates(view_a, view_b, paths_a, paths_b, ok_lm, branch_tol_px)
+        cand = _Cand.closed(gain, cost, pa, pb, D)
+        cand.gain *= _radius_agreement(cand, mm_a, mm_b)
+        cands.append(cand)
+    cands += _open_candidates(view_a, view_b, paths_a, paths_b, ok_lm, branch_tol_px, mm_a, mm_b)
     cands.sort(key=lambda c: -c.gain)
 
     accepted, map_ab, map_ba, only_a, only_b, used_a, used_b = _select(cands)
@@ -424,8 +434,6 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     # Orientation: proximal first, by view A's tree (depth from the root).
     depth_a = _depths(ga)
     pairs: list[BranchPair] = []
-    mm_a = float(np.mean(view_a.mm_per_px))
-    mm_b = float(np.mean(view_b.mm_per_px))
     for c in accepted:
         pieces = _pieces(view_a, view_b, ga, gb, c, mm_a, mm_b)
         far = c.pa.nodes[len(c.edges_a)]
@@ -496,7 +504,7 @@ class _Cand:
 
 
 def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: list[_Path],
-                     ok_lm: np.ndarray, tol: float) -> list[_Cand]:
+                     ok_lm: np.ndarray, tol: float, mm_a: float, mm_b: float) -> list[_Cand]:
     """Pairs anchored at one agreeing landmark whose far end is free.
 
     A vessel end cut by an overlap, a branch point seen in one view only or a
@@ -554,6 +562,8 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         gain = (min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * (CHAIN_FACTOR ** extra) * OPEN_FACTOR)
         cand = _Cand(gain, cost, pa, pb, D, (ie, je), [(pa.nodes[0], pb.nodes[0])],
                      pa.nodes[1:ka], pb.nodes[1:kb], list(pa.edges[:ka]), list(pb.edges[:kb]))
+        cand.gain *= _radius_agreement(cand, mm_a, mm_b)
+        gain = cand.gain
         # Longer paths that share the aligned prefix give the same pair: keep the best.
         key = (pa.nodes[0], pb.nodes[0], tuple(cand.edges_a), tuple(cand.edges_b),
                tuple(pa.rev[:ka]), tuple(pb.rev[:kb]))
@@ -563,6 +573,17 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         elif gain > out[seen[key]].gain:
             out[seen[key]] = cand
     return out
+
+
+def _radius_agreement(c: _Cand, mm_a: float, mm_b: float) -> float:
+    """Gain factor from the agreement of the two views' radii (mm at the isocentre) along the pair."""
+    if RADIUS_SIGMA <= 0:
+        return 1.0
+    ie, je = c.end
+    pi, pj = backtrack(c.D[: ie + 1, : je + 1])
+    ra = float(np.median(c.pa.radius[pi])) * mm_a
+    rb = float(np.median(c.pb.radius[pj])) * mm_b
+    return float(np.exp(-(np.log(max(ra, 1e-6) / max(rb, 1e-6)) / RADIUS_SIGMA) ** 2))
 
 
 def _select_greedy(cands: list[_Cand]) -> tuple:

@@ -192,7 +192,8 @@ class Reconstruction:
             "graphs": {"a": _graph_summary(self.graphs[0]), "b": _graph_summary(self.graphs[1])},
             "matching": {"landmark_pairs": len(self.match.landmark_pairs),
                          "branch_pairs": len(self.match.pairs),
-                         "unmatched": [{"kind": u.kind, "view": u.view, "index": u.index, "reason": u.reason}
+                         "unmatched": [{"kind": u.kind, "view": u.view, "index": u.index, "reason": u.reason,
+                                        "range_px": u.range and [round(x, 2) for x in u.range]}
                                        for u in self.match.unmatched]},
             "branches": [b.to_dict() for b in self.branches],
             "reprojection": {k: round(v, 4) for k, v in self.errors.items()},
