@@ -285,6 +285,8 @@ def _dtw(E: np.ndarray, X: np.ndarray) -> np.ndarray:
     vessel running along an epipolar line) the shortest 3D curve wins.
     """
     n, m = E.shape
+    if n > m:  # the recursion is symmetric: loop over the shorter side
+        return _dtw(E.T, X.transpose(1, 0, 2)).T
     lw = LENGTH_WEIGHT
     dv = np.zeros((n, m))
     dh = np.zeros((n, m))
@@ -304,14 +306,15 @@ def _dtw(E: np.ndarray, X: np.ndarray) -> np.ndarray:
     return D
 
 
-def _compare(va: CArmView, vb: CArmView, pa: _Path, pb: _Path) -> tuple[float, np.ndarray]:
+def _compare(va: CArmView, vb: CArmView, pa: _Path, pb: _Path
+             ) -> tuple[float, np.ndarray, tuple[np.ndarray, np.ndarray]]:
     rec = reconstruction_error(va, pa.pts[:, None, :], vb, pb.pts[None, :, :])
     E = np.minimum(np.nan_to_num(rec.error_px, nan=CAP_PX), CAP_PX)
     X = np.nan_to_num(rec.points_mm, nan=1e6)
     D = _dtw(E, X)
     pi, pj = backtrack(D)
     # Mean reconstruction error along the path (the length term only chooses the path).
-    return float(np.mean(E[pi, pj])), D
+    return float(np.mean(E[pi, pj])), D, (pi, pj)
 
 
 def _check_graph(graph: Any, name: str) -> CentrelineGraph:
@@ -418,12 +421,12 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
             pb = pb.reversed()
         if pa.nodes[0] == pa.nodes[-1] or pb.nodes[0] == pb.nodes[-1]:
             continue
-        cost, D = _compare(view_a, view_b, pa, pb)
+        cost, D, path = _compare(view_a, view_b, pa, pb)
         if cost > branch_tol_px:
             continue
         extra = len(pa.edges) + len(pb.edges) - 2
         gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra)
-        cand = _Cand.closed(gain, cost, pa, pb, D)
+        cand = _Cand.closed(gain, cost, pa, pb, path)
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         cands.append(cand)
     cands += _open_candidates(view_a, view_b, paths_a, paths_b, ok_lm, branch_tol_px, mm_a, mm_b)
@@ -488,8 +491,8 @@ class _Cand:
     cost: float
     pa: _Path
     pb: _Path
-    D: np.ndarray  # accumulated alignment cost
     end: tuple[int, int]  # last aligned samples (i, j)
+    path: tuple[np.ndarray, np.ndarray]  # the alignment: sample indices (view A, view B)
     ends: list[tuple[int, int]]  # landmark pairs it asserts
     inner_a: list[int]  # landmarks it passes through (seen in one view only)
     inner_b: list[int]
@@ -497,8 +500,9 @@ class _Cand:
     edges_b: list[int]
 
     @classmethod
-    def closed(cls, gain: float, cost: float, pa: _Path, pb: _Path, D: np.ndarray) -> _Cand:
-        return cls(gain, cost, pa, pb, D, (len(pa.s) - 1, len(pb.s) - 1),
+    def closed(cls, gain: float, cost: float, pa: _Path, pb: _Path,
+               path: tuple[np.ndarray, np.ndarray]) -> _Cand:
+        return cls(gain, cost, pa, pb, (len(pa.s) - 1, len(pb.s) - 1), path,
                    [(pa.nodes[0], pb.nodes[0]), (pa.nodes[-1], pb.nodes[-1])],
                    pa.nodes[1:-1], pb.nodes[1:-1], list(pa.edges), list(pb.edges))
 
@@ -560,7 +564,7 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         ka, kb = max(ka, 1), max(kb, 1)
         extra = ka + kb - 2
         gain = (min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * (CHAIN_FACTOR ** extra) * OPEN_FACTOR)
-        cand = _Cand(gain, cost, pa, pb, D, (ie, je), [(pa.nodes[0], pb.nodes[0])],
+        cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])],
                      pa.nodes[1:ka], pb.nodes[1:kb], list(pa.edges[:ka]), list(pb.edges[:kb]))
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         gain = cand.gain
@@ -579,8 +583,7 @@ def _radius_agreement(c: _Cand, mm_a: float, mm_b: float) -> float:
     """Gain factor from the agreement of the two views' radii (mm at the isocentre) along the pair."""
     if RADIUS_SIGMA <= 0:
         return 1.0
-    ie, je = c.end
-    pi, pj = backtrack(c.D[: ie + 1, : je + 1])
+    pi, pj = c.path
     ra = float(np.median(c.pa.radius[pi])) * mm_a
     rb = float(np.median(c.pb.radius[pj])) * mm_b
     return float(np.exp(-(np.log(max(ra, 1e-6) / max(rb, 1e-6)) / RADIUS_SIGMA) ** 2))
@@ -697,7 +700,7 @@ def _pieces(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph
     """Cut a matched path pair at every node of either path into per-branch pieces."""
     pa, pb = c.pa, c.pb
     ie, je = c.end
-    pi, pj = backtrack(c.D[: ie + 1, : je + 1])
+    pi, pj = c.path
     sa, sb = pa.s[pi], pb.s[pj]
     la, lb = float(pa.s[ie]), float(pb.s[je])
     closed = len(c.ends) == 2
