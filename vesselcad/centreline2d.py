@@ -25,7 +25,7 @@ from scipy.sparse import csgraph
 from skimage import morphology
 
 from .errors import ArgumentError, VesselcadWarning
-from .geometry import CArmView
+from .geometry import CArmView, check_view
 from .splines import arc_length, fit_curve_2d
 
 __all__ = ["Landmark", "Branch2D", "Crossing", "CentrelineGraph", "centreline_graph", "catheter_tip"]
@@ -706,8 +706,7 @@ def centreline_graph(
     >>> graph = vc.centreline_graph(labels == 1, view, labels=labels)  # doctest: +SKIP
     >>> graph.branch_points.shape, graph.branches[0].radius_mm[:3]  # doctest: +SKIP
     """
-    if not isinstance(view, CArmView):
-        raise ArgumentError(f"view: expected a vesselcad.CArmView, got {type(view).__name__}")
+    check_view(view, "view")
     shape = (view.rows, view.cols)
     m = _as_mask(mask, "mask", shape)
     cath = None

@@ -17,7 +17,7 @@ import numpy as np
 from scipy import interpolate
 
 from .errors import ArgumentError
-from .geometry import CArmView
+from .geometry import CArmView, check_view
 
 __all__ = ["EpipolarPair", "ordered_correspondence"]
 
@@ -36,9 +36,8 @@ class EpipolarPair:
     """
 
     def __init__(self, view_a: CArmView, view_b: CArmView) -> None:
-        for name, v in (("view_a", view_a), ("view_b", view_b)):
-            if not isinstance(v, CArmView):
-                raise ArgumentError(f"{name}: expected a vesselcad.CArmView, got {type(v).__name__}")
+        check_view(view_a, "view_a")
+        check_view(view_b, "view_b")
         self.view_a, self.view_b = view_a, view_b
         sa, sb = view_a.source, view_b.source
         base = sb - sa

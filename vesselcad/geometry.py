@@ -384,7 +384,8 @@ class Reconstruction2View(NamedTuple):
     error_b_px: np.ndarray
 
 
-def _check_view(view: Any, name: str) -> CArmView:
+def check_view(view: Any, name: str) -> CArmView:
+    """Return ``view`` if it is a :class:`CArmView`, else raise ArgumentError naming ``name``."""
     if not isinstance(view, CArmView):
         raise ArgumentError(f"{name}: expected a vesselcad.CArmView, got {type(view).__name__}")
     return view
@@ -408,8 +409,8 @@ def triangulate(view_a: CArmView, points_a_px: Any, view_b: CArmView, points_b_p
     numpy.ndarray, shape (..., 3)
         LPS mm; NaN where the two rays are parallel.
     """
-    _check_view(view_a, "view_a")
-    _check_view(view_b, "view_b")
+    check_view(view_a, "view_a")
+    check_view(view_b, "view_b")
     oa, da = view_a.ray(points_a_px)
     ob, db = view_b.ray(points_b_px)
     da, db = np.broadcast_arrays(da, db)

@@ -32,7 +32,7 @@ from scipy import interpolate
 from .centreline2d import CentrelineGraph
 from .epipolar import backtrack
 from .errors import ArgumentError
-from .geometry import CArmView, reconstruction_error
+from .geometry import CArmView, check_view, reconstruction_error
 from .splines import arc_length, fit_curve_2d
 
 __all__ = ["LandmarkMatch", "BranchPair", "Unmatched", "GraphMatch", "match_graphs"]
@@ -61,8 +61,6 @@ OPEN_FACTOR = 0.8
 OPEN_TAU = 0.5
 #: Width (log of the radius ratio) of the gain factor for radius agreement between the views.
 RADIUS_SIGMA = 0.5
-#: Longest chain of branches in an open-ended pair.
-OPEN_MAX_CHAIN = 1
 #: Shortest open-ended pair (px along each view).
 MIN_OPEN_PX = 16.0
 
@@ -306,11 +304,16 @@ def _dtw(E: np.ndarray, X: np.ndarray) -> np.ndarray:
     return D
 
 
+def _errors(va: CArmView, vb: CArmView, pa: _Path, pb: _Path) -> tuple[np.ndarray, np.ndarray]:
+    """Reconstruction errors (px, capped) and triangulated points (mm) of all sample pairs."""
+    rec = reconstruction_error(va, pa.pts[:, None, :], vb, pb.pts[None, :, :])
+    return (np.minimum(np.nan_to_num(rec.error_px, nan=CAP_PX), CAP_PX),
+            np.nan_to_num(rec.points_mm, nan=1e6))
+
+
 def _compare(va: CArmView, vb: CArmView, pa: _Path, pb: _Path
              ) -> tuple[float, np.ndarray, tuple[np.ndarray, np.ndarray]]:
-    rec = reconstruction_error(va, pa.pts[:, None, :], vb, pb.pts[None, :, :])
-    E = np.minimum(np.nan_to_num(rec.error_px, nan=CAP_PX), CAP_PX)
-    X = np.nan_to_num(rec.points_mm, nan=1e6)
+    E, X = _errors(va, vb, pa, pb)
     D = _dtw(E, X)
     pi, pj = backtrack(D)
     # Mean reconstruction error along the path (the length term only chooses the path).
@@ -377,9 +380,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     ArgumentError
         Arguments of the wrong type.
     """
-    for v, name in ((view_a, "view_a"), (view_b, "view_b")):
-        if not isinstance(v, CArmView):
-            raise ArgumentError(f"{name}: expected a vesselcad.CArmView, got {type(v).__name__}")
+    check_view(view_a, "view_a")
+    check_view(view_b, "view_b")
     for tol, name in ((landmark_tol_px, "landmark_tol_px"), (branch_tol_px, "branch_tol_px")):
         if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
             raise ArgumentError(f"{name}: expected a positive number of pixels, got {tol!r}")
@@ -509,26 +511,23 @@ class _Cand:
 
 def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: list[_Path],
                      ok_lm: np.ndarray, tol: float, mm_a: float, mm_b: float) -> list[_Cand]:
-    """Pairs anchored at one agreeing landmark whose far end is free.
+    """Branch pairs anchored at one agreeing landmark whose far end is free.
 
     A vessel end cut by an overlap, a branch point seen in one view only or a
     vessel that leaves the field in one view leaves the far end without a
-    partner. The path of one view is then aligned with a prefix of the other
-    (or a prefix of it with all of the other): a local alignment whose step
-    cost is the reconstruction error minus ``OPEN_TAU * tol``, so that it runs
-    as long as the two curves agree.
+    partner. A branch of one view (either way round) is then aligned with a
+    prefix of a branch of the other (or a prefix of it with all of the other):
+    a local alignment whose step cost is the reconstruction error minus
+    ``OPEN_TAU * tol``, so that it runs as long as the two curves agree.
     """
-    all_a = [q for p in paths_a if len(p.edges) <= OPEN_MAX_CHAIN for q in (p, p.reversed())]
-    all_b = [q for p in paths_b if len(p.edges) <= OPEN_MAX_CHAIN for q in (p, p.reversed())]
-    first_a = np.array([p.nodes[0] for p in all_a])
-    first_b = np.array([p.nodes[0] for p in all_b])
-    single_a = np.array([len(p.edges) == 1 for p in all_a])
-    single_b = np.array([len(p.edges) == 1 for p in all_b])
-    ok = ok_lm[first_a][:, first_b] & (single_a[:, None] | single_b[None, :])
-    ii, jj = np.nonzero(ok)
+    all_a = [q for p in paths_a if len(p.edges) == 1 for q in (p, p.reversed())]
+    all_b = [q for p in paths_b if len(p.edges) == 1 for q in (p, p.reversed())]
+    first_a = np.array([p.nodes[0] for p in all_a], dtype=np.int64)
+    first_b = np.array([p.nodes[0] for p in all_b], dtype=np.int64)
+    ii, jj = np.nonzero(ok_lm[first_a][:, first_b])
     if len(ii) == 0:
         return []
-    # Quick test on the first MIN_OPEN_PX of both paths (all pairs at once): each sample of one
+    # Quick test on the first MIN_OPEN_PX of both branches (all pairs at once): each sample of one
     # must have a partner in the other within tau on average, or no alignment can start.
     k = int(np.ceil(MIN_OPEN_PX / STEP_PX)) + 1
     head = lambda ps: np.stack([p.pts[np.minimum(np.arange(k), len(p.pts) - 1)] for p in ps])  # noqa: E731
@@ -538,44 +537,29 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
     tau = OPEN_TAU * tol
     keep = (E0.min(axis=2).mean(axis=1) <= tau) & (E0.min(axis=1).mean(axis=1) <= tau)
     out: list[_Cand] = []
-    seen: dict[tuple, int] = {}
     for i, j in zip(ii[keep], jj[keep], strict=True):
         pa, pb = all_a[i], all_b[j]
         if pa.nodes[0] == pa.nodes[-1] or pb.nodes[0] == pb.nodes[-1]:
             continue
-        rec = reconstruction_error(va, pa.pts[:, None, :], vb, pb.pts[None, :, :])
-        E = np.minimum(np.nan_to_num(rec.error_px, nan=CAP_PX), CAP_PX)
-        X = np.nan_to_num(rec.points_mm, nan=1e6)
+        E, X = _errors(va, vb, pa, pb)
         D = _dtw(E - tau, X)
         n, m = D.shape
         last = np.r_[D[-1, :], D[:, -1]]
         k = int(np.argmin(last))
         ie, je = (n - 1, k) if k < m else (k - m, m - 1)
         if ie == n - 1 and je == m - 1:
-            continue  # a whole-path alignment: a closed candidate where its ends agree
+            continue  # a whole-branch alignment: a closed candidate where its ends agree
         if min(pa.s[ie], pb.s[je]) < MIN_OPEN_PX:
             continue
         pi, pj = backtrack(D[: ie + 1, : je + 1])
         cost = float(np.mean(E[pi, pj]))
         if cost > tol:
             continue
-        ka = int(np.searchsorted(pa.bounds, pa.s[ie], side="left"))  # edges used: 0 .. ka-1
-        kb = int(np.searchsorted(pb.bounds, pb.s[je], side="left"))
-        ka, kb = max(ka, 1), max(kb, 1)
-        extra = ka + kb - 2
-        gain = (min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * (CHAIN_FACTOR ** extra) * OPEN_FACTOR)
-        cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])],
-                     pa.nodes[1:ka], pb.nodes[1:kb], list(pa.edges[:ka]), list(pb.edges[:kb]))
+        gain = min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * OPEN_FACTOR
+        cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])], [], [],
+                     list(pa.edges), list(pb.edges))
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
-        gain = cand.gain
-        # Longer paths that share the aligned prefix give the same pair: keep the best.
-        key = (pa.nodes[0], pb.nodes[0], tuple(cand.edges_a), tuple(cand.edges_b),
-               tuple(pa.rev[:ka]), tuple(pb.rev[:kb]))
-        if key not in seen:
-            seen[key] = len(out)
-            out.append(cand)
-        elif gain > out[seen[key]].gain:
-            out[seen[key]] = cand
+        out.append(cand)
     return out
 
 

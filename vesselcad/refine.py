@@ -30,7 +30,7 @@ from scipy.optimize import least_squares
 
 from .centreline2d import CentrelineGraph
 from .errors import ArgumentError
-from .geometry import CArmView, reconstruction_error, triangulate
+from .geometry import CArmView, check_view, reconstruction_error, triangulate
 from .matching import match_graphs
 from .splines import resample_by_arclength
 
@@ -175,9 +175,8 @@ def refine_geometry(
     -------
     Refinement
     """
-    for v, name in ((view_a, "view_a"), (view_b, "view_b")):
-        if not isinstance(v, CArmView):
-            raise ArgumentError(f"{name}: expected a vesselcad.CArmView, got {type(v).__name__}")
+    check_view(view_a, "view_a")
+    check_view(view_b, "view_b")
     for val, name in ((max_rotation_deg, "max_rotation_deg"), (max_shift_mm, "max_shift_mm")):
         if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
             raise ArgumentError(f"{name}: expected a positive number, got {val!r}")
