@@ -559,7 +559,9 @@ class VesselTree:
         Rebuilds (and merges) if needed, clamps the radius against curvature and
         at child starts, and moves a child's start onto its parent's centreline
         when it lies off it. Returns dicts ``{'id', 'name', 'parent', 'spine',
-        'radius', 'warnings'}``.
+        'radius', 'cuts', 'warnings'}``; ``cuts`` are the spine parameters (mm)
+        where a pipe that would overlap itself is cut into pieces (empty for
+        almost every branch).
         """
         tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
         if merge:
@@ -574,9 +576,10 @@ class VesselTree:
                 warns += w
             law, w = _clamp_radius(spine, law, r_parent)
             warns += w
-            warns += _self_approach(spine, law)
+            w, cuts = _self_approach(spine, law)
+            warns += w
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
-                          "radius": law, "warnings": warns})
+                          "radius": law, "cuts": cuts, "warnings": warns})
         return specs
 
     def solid(self, tol_mm: float = TOL_MM, merge: bool = True,
@@ -641,7 +644,7 @@ class VesselTree:
                 continue
             try:
                 pipes.append(branch_pipe(s["id"], s["name"], s["parent"], s["spine"], s["radius"],
-                                         station_step_mm))
+                                         station_step_mm, s.get("cuts", ())))
             except Exception as exc:  # one bad branch never loses the rest
                 failed[s["id"]] = f"pipe could not be built: {exc}"
         t2 = time.perf_counter()
@@ -722,34 +725,69 @@ def _start_inside(b: TreeBranch, par: TreeBranch
 
     A start farther than ``MAX_START_GAP_RADII`` parent radii (and 2 mm) from the
     parent is left alone: such a branch is not attached, and the fusion reports it.
+    A child that starts at its parent's very end (a bifurcation where neither
+    daughter continues the parent) gets a lead-in that starts one parent radius
+    back inside the parent and bends into the child: otherwise its start circle
+    would cross the parent's end circle at their common centre, which booleans
+    do not survive.
     """
     start = b.spline(b.domain[0])
     s_par = _project_params(par.spline, start[None])[0]
     foot = par.spline(s_par)
     gap = float(np.linalg.norm(start - foot))
     r_par = float(par.radius_at(s_par))
-    if gap <= 0.02 * r_par + 1e-6:
+    pa, pe = par.domain
+    at_end = s_par > pe - r_par and pe - pa > 2.0 * r_par
+    if gap <= 0.02 * r_par + 1e-6 and not at_end:
         return b.spline, b.radius_law, [], r_par
     if gap > max(MAX_START_GAP_RADII * r_par, 2.0):
         return (b.spline, b.radius_law, [f"starts {gap:.1f} mm from its parent's centreline: not attached"],
                 r_par)
-    # Prepend the foot point: refit a spine that leaves the parent's axis and joins
-    # the child smoothly within a few radii.
     a, e = b.domain
     s = np.linspace(a, e, max(int((e - a) / 0.25), 4) + 1)
     pts = b.spline(s)
     join = min(a + 2.0 * r_par + gap, a + 0.5 * (e - a))
     keep = s >= join
-    lead = np.linspace(0.0, 1.0, 12)[:-1, None] * (pts[keep][0] - foot) + foot
+    if at_end:
+        # Hermite lead-in from the parent's axis one radius before its end (along the
+        # parent) to the child at ``join`` (along the child).
+        s_foot = pe - r_par
+        p0, p1 = par.spline(s_foot), pts[keep][0]
+        t0, t1 = _unit(par.spline.derivative()(s_foot)), _unit(b.spline.derivative()(s[keep][0]))
+        chord = float(np.linalg.norm(p1 - p0))
+        u = np.linspace(0.0, 1.0, max(int(chord / 0.25), 4) + 1)[:-1, None]
+        lead = ((2 * u**3 - 3 * u**2 + 1) * p0 + (u**3 - 2 * u**2 + u) * chord * t0
+                + (-2 * u**3 + 3 * u**2) * p1 + (u**3 - u**2) * chord * t1)
+        r_par = float(par.radius_at(s_foot))
+        note = f"starts at its parent's end: lead-in from {r_par:.2f} mm back inside the parent"
+    else:
+        # Prepend the foot point: refit a spine that leaves the parent's axis and joins
+        # the child smoothly within a few radii.
+        lead = np.linspace(0.0, 1.0, 12)[:-1, None] * (pts[keep][0] - foot) + foot
+        note = f"start moved {gap:.2f} mm onto the parent's centreline"
     new_pts = np.vstack([lead, pts[keep]])
     rad = np.r_[np.full(len(lead), float(b.radius_at(join))), b.radius_at(s[keep])]
     spl, _ = fit_spine(new_pts, TOL_MM)
     law = fit_radius_law(_project_params(spl, new_pts), rad, float(spl.t[-4] - spl.t[3]))
-    return spl, law, [f"start moved {gap:.2f} mm onto the parent's centreline"], r_par
+    return spl, law, [note], r_par
 
 
-def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> list[str]:
-    """Warn where a branch's pipe would overlap itself (the centreline comes back near itself)."""
+def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> tuple[list[str], list[float]]:
+    """Where a branch's pipe would overlap itself, and where to cut it so no piece does.
+
+    A pipe whose centreline comes back near itself (closer than the two radii,
+    farther apart along the curve than half a turn around both) is not a valid
+    sweep: its wall crosses itself, which ``BRepCheck_Analyzer`` does not see
+    and booleans do not survive. Cutting the spine between every such pair of
+    points (at the middle of the arc between them, where a loop turns) gives
+    pieces that are each clean and whose union is the true vessel.
+
+    Returns
+    -------
+    warnings : list of str
+    cuts : list of float
+        Spine parameters (mm) to cut the pipe at, ascending; empty when it is clean.
+    """
     from scipy.spatial import cKDTree
 
     a, e = float(spine.t[3]), float(spine.t[-4])
@@ -758,17 +796,26 @@ def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> list
     r = np.ravel(law(s))
     pairs = cKDTree(p).query_pairs(2.0 * float(r.max()), output_type="ndarray")
     if len(pairs) == 0:
-        return []
-    i, j = pairs[:, 0], pairs[:, 1]
+        return [], []
+    i, j = pairs.min(axis=1), pairs.max(axis=1)
     gap = np.linalg.norm(p[i] - p[j], axis=1) - r[i] - r[j]
     far = np.abs(s[i] - s[j]) > np.pi * (r[i] + r[j])
     bad = far & (gap < 0)
     if not np.any(bad):
-        return []
+        return [], []
     k = np.flatnonzero(bad)[np.argmin(gap[bad])]
+    # Stab every overlapping pair's interval with a cut, earliest-ending first (greedy
+    # interval stabbing; the cut goes to the middle of the first unstabbed interval).
+    lo, hi = s[i[bad]], s[j[bad]]
+    cuts: list[float] = []
+    for m in np.argsort(hi, kind="stable"):
+        if not any(lo[m] < c < hi[m] for c in cuts):
+            cuts.append(0.5 * float(lo[m] + hi[m]))
+    cuts.sort()
     return [f"the pipe overlaps itself: the centreline at {s[i[k]]:.1f} mm and at {s[j[k]]:.1f} mm comes "
             f"within {float(np.linalg.norm(p[i[k]] - p[j[k]])):.2f} mm (radii {r[i[k]]:.2f} and "
-            f"{r[j[k]]:.2f} mm); booleans with this pipe may fail"]
+            f"{r[j[k]]:.2f} mm); swept in {len(cuts) + 1} pieces (cut at "
+            + ", ".join(f"{c:.1f}" for c in cuts) + " mm) that are fused"], cuts
 
 
 def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent: float | None

@@ -184,8 +184,16 @@ def _oriented_solid(shell: TopoDS_Shell) -> TopoDS_Shape:
     return fix.Solid()
 
 
-def tube_solid(surface: Geom_BSplineSurface) -> tuple[TopoDS_Solid, TopoDS_Face, TopoDS_Face, TopoDS_Face]:
+def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None = None
+               ) -> tuple[TopoDS_Solid, TopoDS_Face, TopoDS_Face, TopoDS_Face]:
     """Close a tube wall with two planar caps.
+
+    Parameters
+    ----------
+    surface : Geom_BSplineSurface
+        A wall made by :func:`tube_surface`.
+    v_range : (float, float), optional
+        Part of the wall to close (V = spine parameter); default all of it.
 
     Returns
     -------
@@ -194,6 +202,10 @@ def tube_solid(surface: Geom_BSplineSurface) -> tuple[TopoDS_Solid, TopoDS_Face,
         The faces of the solid (the caps at V = first and last parameter).
     """
     u0, u1, v0, v1 = surface.Bounds()
+    if v_range is not None:
+        if not v0 <= v_range[0] < v_range[1] <= v1:
+            raise GeometryError(f"tube: v_range {v_range} is not inside the wall's ({v0}, {v1})")
+        v0, v1 = map(float, v_range)
     wall = BRepBuilderAPI_MakeFace(surface, u0, u1, v0, v1, TUBE_TOL_MM).Face()
     circles = _boundary_circles(wall)
     if len(circles) != 2:
@@ -233,7 +245,8 @@ def tube_solid(surface: Geom_BSplineSurface) -> tuple[TopoDS_Solid, TopoDS_Face,
 
 
 def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolate.BSpline,
-                radius: interpolate.BSpline, station_step_mm: float = 2.0) -> BranchPipe:
+                radius: interpolate.BSpline, station_step_mm: float = 2.0,
+                cuts: tuple[float, ...] | list[float] = ()) -> BranchPipe:
     """The closed pipe of one branch (see :func:`tube_surface`) with its end data.
 
     Parameters
@@ -246,6 +259,11 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
         Radius law over the same parameter (mm).
     station_step_mm : float
         Largest spacing of the exact circular sections.
+    cuts : sequence of float
+        Spine parameters (mm) where to cut a pipe that comes back near itself
+        (``VesselTree.pipe_specs`` finds them): the pieces are trimmed from
+        copies of one wall surface, so neighbours share their cut circle
+        exactly, and are fused into the branch's solid.
 
     Returns
     -------
@@ -253,20 +271,68 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
     """
     if not station_step_mm > 0:
         raise GeometryError(f"station_step_mm: expected a positive number, got {station_step_mm!r}")
-    surface = tube_surface(spine, radius, station_step_mm)
-    solid, wall, cap0, cap1 = tube_solid(surface)
     k = spine.k
     a, b = float(spine.t[k]), float(spine.t[-k - 1])
+    cuts = sorted(float(c) for c in cuts)
+    if any(not a < c < b for c in cuts):
+        raise GeometryError(f"branch {branch_id}: cuts {cuts} must lie inside the spine ({a:.3f}, {b:.3f})")
+    surface = tube_surface(spine, radius, station_step_mm)
     d = spine.derivative()
+    if not cuts:
+        solid, wall, cap0, cap1 = tube_solid(surface)
+        walls: tuple[TopoDS_Face, ...] = (wall,)
+        # Exact volume of a pipe with sections normal to its spine: integral of pi r^2 ds.
+        u = np.linspace(a, b, max(int((b - a) / 0.1), 8) + 1)
+        ds = np.linalg.norm(d(u), axis=1)
+        area = np.pi * np.ravel(radius(u)) ** 2
+        volume = float(np.sum(0.5 * (area[1:] * ds[1:] + area[:-1] * ds[:-1]) * np.diff(u)))
+    else:
+        solid, walls, cap0, cap1, volume = _pieces(surface, [a, *cuts, b], branch_id)
 
     def unit(v: np.ndarray) -> np.ndarray:
         return v / np.linalg.norm(v)
 
-    # Exact volume of a pipe with sections normal to its spine: integral of pi r^2 ds.
-    u = np.linspace(a, b, max(int((b - a) / 0.1), 8) + 1)
-    ds = np.linalg.norm(d(u), axis=1)
-    area = np.pi * np.ravel(radius(u)) ** 2
-    volume = float(np.sum(0.5 * (area[1:] * ds[1:] + area[:-1] * ds[:-1]) * np.diff(u)))
-    return BranchPipe(branch_id, name, parent, solid, wall, cap0, cap1, spine(a), spine(b),
-                      unit(d(a)), unit(d(b)), float(np.ravel(radius(a))[0]), float(np.ravel(radius(b))[0]),
-                      volume)
+    r0, r1 = float(np.ravel(radius(a))[0]), float(np.ravel(radius(b))[0])
+    # probe points on the axis, clear of the start (inside the parent) and the end cap
+    lo, hi = a + min(3.0 * r0, 0.5 * (b - a)), b - min(r1, 0.25 * (b - a))
+    probes = spine(np.linspace(lo, hi, 3) if hi > lo else np.full(3, 0.5 * (a + b)))
+    return BranchPipe(branch_id, name, parent, solid, walls, cap0, cap1, spine(a), spine(b),
+                      unit(d(a)), unit(d(b)), r0, r1, volume, probes)
+
+
+def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int
+            ) -> tuple[TopoDS_Solid, tuple[TopoDS_Face, ...], TopoDS_Face, TopoDS_Face, float]:
+    """Union of the pieces of a tube wall between consecutive ``bounds``, with its
+    wall faces, its two end caps and its volume."""
+    from OCP.BRepCheck import BRepCheck_Analyzer
+    from OCP.TopAbs import TopAbs_FACE, TopAbs_SOLID
+
+    from .solid import FUZZY_MM, _general_fuse, _History, _quick_volume, _subshapes
+
+    # Each piece gets its own copy of the surface: OCCT takes faces on one surface
+    # object for the same domain and would not intersect the pieces where they cross.
+    parts = [tube_solid(surface.Copy(), (v0, v1))
+             for v0, v1 in zip(bounds[:-1], bounds[1:], strict=True)]
+    op = _general_fuse([p[0] for p in parts], FUZZY_MM, parallel=False)
+    shape = op.Shape() if op is not None else None
+    solids = _subshapes(shape, TopAbs_SOLID) if shape is not None else []
+    if len(solids) != 1 or not BRepCheck_Analyzer(solids[0]).IsValid():
+        raise GeometryError(f"branch {branch_id}: the {len(parts)} pieces of a pipe that overlaps itself "
+                            f"did not fuse into one valid solid")
+    history = _History()
+    history.ops.append(op)
+    faces = {hash(f): f for f in _subshapes(solids[0], TopAbs_FACE)}
+
+    def kept(face: TopoDS_Face) -> list[TopoDS_Face]:
+        return [TopoDS.Face_s(faces[hash(f)]) for f in history.images(face)
+                if hash(f) in faces and faces[hash(f)].IsSame(f)]
+
+    walls: list[TopoDS_Face] = []
+    for f in (f for p in parts for f in kept(p[1])):
+        if not any(f.IsSame(w) for w in walls):
+            walls.append(f)
+    start, end = kept(parts[0][2]), kept(parts[-1][3])
+    if not walls or len(start) != 1 or len(end) != 1:
+        raise GeometryError(f"branch {branch_id}: the union of the pieces of a pipe that overlaps itself "
+                            f"lost its wall or an end face")
+    return TopoDS.Solid_s(solids[0]), tuple(walls), start[0], end[0], _quick_volume(solids[0])

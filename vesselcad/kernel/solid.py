@@ -66,7 +66,10 @@ class BranchPipe:
     name : str
     parent : int or None
     solid : TopoDS_Solid
-    wall, start_cap, end_cap : TopoDS_Face
+    walls : tuple of TopoDS_Face
+        The wall faces: one, or one per piece of a pipe that had to be swept in
+        pieces because it comes back near itself (their union, not overlapping).
+    start_cap, end_cap : TopoDS_Face
     start, end : (3,) arrays
         Spine end points (mm).
     start_tangent, end_tangent : (3,) arrays
@@ -74,14 +77,19 @@ class BranchPipe:
     start_radius, end_radius : float
     tube_volume_mm3 : float
         Integral of pi r(s)^2 ds along the spine: the pipe's exact volume (sections
-        normal to the spine), used to sanity-check booleans without integrating.
+        normal to the spine); for a pipe in pieces, the volume of their union.
+        Used to sanity-check booleans without integrating.
+    probes : (3, 3) array
+        Points on the spine: three start radii from the start (clear of the
+        parent the pipe starts in), the middle, one end radius before the end.
+        A union that holds the pipe holds them; checked after fusing.
     """
 
     branch_id: int
     name: str
     parent: int | None
     solid: TopoDS_Solid
-    wall: TopoDS_Face
+    walls: tuple[TopoDS_Face, ...]
     start_cap: TopoDS_Face
     end_cap: TopoDS_Face
     start: np.ndarray
@@ -91,6 +99,12 @@ class BranchPipe:
     start_radius: float
     end_radius: float
     tube_volume_mm3: float
+    probes: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+
+    @property
+    def wall(self) -> TopoDS_Face:
+        """The first (usually the only) wall face."""
+        return self.walls[0]
 
 
 @dataclass(frozen=True)
@@ -212,7 +226,7 @@ class VesselSolid:
     timings_s : dict of str -> float
     specs : list of dict
         The spines and radius laws the pipes were swept along (when made by
-        ``VesselTree.solid``): ``{'id', 'name', 'parent', 'spine', 'radius', 'warnings'}``.
+        ``VesselTree.solid``): ``{'id', 'name', 'parent', 'spine', 'radius', 'cuts', 'warnings'}``.
     extensions : dict of (int, str) -> float
         Flow extensions added by :meth:`with_flow_extensions`: length (mm) per
         ``(branch_id, 'inlet' | 'outlet')``.
@@ -653,7 +667,7 @@ def _tag_faces(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
                root: int | None) -> list[tuple[TopoDS_Face, FaceTag]]:
     origin: dict[int, list[tuple[TopoDS_Shape, FaceTag]]] = {}
     for p in pipes:
-        roles = [(p.wall, "wall"),
+        roles = [*((w, "wall") for w in p.walls),
                  (p.start_cap, "inlet" if p.branch_id == root else "cap"),
                  (p.end_cap, "outlet")]
         for f, role in roles:
@@ -754,12 +768,41 @@ def _quick_volume(shape: TopoDS_Shape) -> float:
 
 
 def _complete(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History) -> bool:
-    """Whether a union kept a face of every pipe's wall and about the largest pipe's volume."""
+    """Whether a union holds every pipe.
+
+    Checks that it kept a face of every pipe's walls and at least the largest
+    pipe's volume, and, because OCCT can return a valid solid that dropped most
+    of a branch near a junction and kept a sliver of its wall, that every pipe's
+    first probe point (three start radii along its axis) lies inside it and its
+    end face survived (or else its last probe point lies inside: an end may end
+    inside another vessel). One point classification per pipe.
+    """
     faces = {hash(f) for f in _subshapes(shape, TopAbs_FACE)}
     for p in pipes:
-        if not faces.intersection(hash(f) for f in history.images(p.wall)):
+        if not faces.intersection(hash(f) for w in p.walls for f in history.images(w)):
             return False
-    return _quick_volume(shape) >= VOLUME_SLACK * max(p.tube_volume_mm3 for p in pipes)
+    if _quick_volume(shape) < VOLUME_SLACK * max(p.tube_volume_mm3 for p in pipes):
+        return False
+    probes = [p.probes[:1] for p in pipes]
+    probes += [p.probes[-1:] for p in pipes
+               if not faces.intersection(hash(f) for f in history.images(p.end_cap))]
+    return _holds(shape, np.vstack(probes))
+
+
+def _holds(shape: TopoDS_Shape, points: np.ndarray) -> bool:
+    """Whether all ``points`` lie inside ``shape`` (OCCT point classification)."""
+    from OCP.BRepClass3d import BRepClass3d_SolidClassifier
+    from OCP.gp import gp_Pnt
+    from OCP.TopAbs import TopAbs_IN
+
+    if not len(points):
+        return True
+    cls = BRepClass3d_SolidClassifier(shape)
+    for q in points:
+        cls.Perform(gp_Pnt(*map(float, q)), 1e-6)
+        if cls.State() != TopAbs_IN:
+            return False
+    return True
 
 
 def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
@@ -771,7 +814,7 @@ def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _His
     succeeds. Pieces that still stay apart are left out and reported.
     """
     solids = _subshapes(shape, TopAbs_SOLID)
-    walls = {p.branch_id: [hash(f) for f in history.images(p.wall)] for p in pipes}
+    walls = {p.branch_id: [hash(f) for w in p.walls for f in history.images(w)] for p in pipes}
     root = pipes[0].branch_id
 
     def owner(solid: TopoDS_Shape) -> set[int]:
@@ -807,7 +850,9 @@ def _pairwise(pipes: list[BranchPipe], fuzzy_mm: float, history: _History, faile
         shape = op.Shape() if op is not None else None
         volume = _quick_volume(shape) if shape is not None else 0.0
         if (shape is None or _count_solids(shape) != 1 or not BRepCheck_Analyzer(shape).IsValid()
-                or volume < VOLUME_SLACK * max(current_volume, p.tube_volume_mm3)):
+                or volume < VOLUME_SLACK * max(current_volume, p.tube_volume_mm3)
+                or not _holds(shape, np.vstack([p.probes, *(q.probes[:1] for q in kept
+                                                             if q.branch_id == p.parent)]))):
             failed[p.branch_id] = "the boolean union with the tree failed"
             continue
         ops.append(op)
