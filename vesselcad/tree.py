@@ -567,17 +567,20 @@ class VesselTree:
         if merge:
             tree = tree.merged(max_merge_angle_deg, tol_mm)
         specs = []
+        swept: dict[int, TreeBranch] = {}  # each branch as its pipe is swept (parents come first)
         for bid in tree.order():
             b = tree[bid]
             spine, law, warns = b.spline, b.radius_law, list(b.warnings)
             r_parent = None
             if b.parent is not None:
-                spine, law, w, r_parent = _start_inside(b, tree[b.parent])
+                # attach to the parent's pipe as swept (its radius clamped, its start moved)
+                spine, law, w, r_parent = _start_inside(b, swept[b.parent])
                 warns += w
             law, w = _clamp_radius(spine, law, r_parent)
             warns += w
             w, cuts = _self_approach(spine, law)
             warns += w
+            swept[bid] = replace(b, spline=spine, radius_law=law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
                           "radius": law, "cuts": cuts, "warnings": warns})
         return specs

@@ -38,7 +38,7 @@ from scipy import interpolate
 
 from ..errors import GeometryError
 from .nurbs import _int_array, _real_array, is_valid, knots_and_mults
-from .solid import BranchPipe
+from .solid import BranchPipe, _inside
 
 __all__ = ["rotation_minimizing_normals", "tube_stations", "tube_surface", "tube_solid", "branch_pipe",
            "TUBE_TOL_MM"]
@@ -296,6 +296,9 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
     # probe points on the axis, clear of the start (inside the parent) and the end cap
     lo, hi = a + min(3.0 * r0, 0.5 * (b - a)), b - min(r1, 0.25 * (b - a))
     probes = spine(np.linspace(lo, hi, 3) if hi > lo else np.full(3, 0.5 * (a + b)))
+    # keep those the classifier finds inside the pipe itself (not so near a thin,
+    # tightly bent start that the classification of the union could not be trusted)
+    probes = probes[_inside(solid, probes)]
     return BranchPipe(branch_id, name, parent, solid, walls, cap0, cap1, spine(a), spine(b),
                       unit(d(a)), unit(d(b)), r0, r1, volume, probes)
 

@@ -79,10 +79,11 @@ class BranchPipe:
         Integral of pi r(s)^2 ds along the spine: the pipe's exact volume (sections
         normal to the spine); for a pipe in pieces, the volume of their union.
         Used to sanity-check booleans without integrating.
-    probes : (3, 3) array
+    probes : (k, 3) array, k <= 3
         Points on the spine: three start radii from the start (clear of the
-        parent the pipe starts in), the middle, one end radius before the end.
-        A union that holds the pipe holds them; checked after fusing.
+        parent the pipe starts in), the middle, one end radius before the end;
+        only those OCCT classifies inside the pipe itself. A union that holds
+        the pipe holds them; checked after fusing.
     """
 
     branch_id: int
@@ -789,20 +790,29 @@ def _complete(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History) -
     return _holds(shape, np.vstack(probes))
 
 
-def _holds(shape: TopoDS_Shape, points: np.ndarray) -> bool:
-    """Whether all ``points`` lie inside ``shape`` (OCCT point classification)."""
+def _inside(shape: TopoDS_Shape, points: np.ndarray, stop_at_outside: bool = False) -> np.ndarray:
+    """Which ``points`` lie inside ``shape`` (OCCT point classification, 1e-6 mm);
+    with ``stop_at_outside`` the points after the first outside one are not tried
+    (and come back False)."""
     from OCP.BRepClass3d import BRepClass3d_SolidClassifier
     from OCP.gp import gp_Pnt
     from OCP.TopAbs import TopAbs_IN
 
+    out = np.zeros(len(points), bool)
     if not len(points):
-        return True
+        return out
     cls = BRepClass3d_SolidClassifier(shape)
-    for q in points:
+    for k, q in enumerate(points):
         cls.Perform(gp_Pnt(*map(float, q)), 1e-6)
-        if cls.State() != TopAbs_IN:
-            return False
-    return True
+        out[k] = cls.State() == TopAbs_IN
+        if stop_at_outside and not out[k]:
+            break
+    return out
+
+
+def _holds(shape: TopoDS_Shape, points: np.ndarray) -> bool:
+    """Whether all ``points`` lie inside ``shape``."""
+    return bool(np.all(_inside(shape, points, stop_at_outside=True)))
 
 
 def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
