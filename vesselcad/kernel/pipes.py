@@ -26,19 +26,20 @@ from __future__ import annotations
 import numpy as np
 from OCP.BRep import BRep_Builder, BRep_Tool
 from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_MakeWire, BRepBuilderAPI_Sewing
+from OCP.BRepCheck import BRepCheck_Analyzer
 from OCP.Geom import Geom_BSplineSurface
 from OCP.gp import gp_Pnt
 from OCP.ShapeFix import ShapeFix_Solid
 from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array2OfReal
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_SHELL
+from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_SHELL, TopAbs_SOLID
 from OCP.TopExp import TopExp, TopExp_Explorer
 from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape, TopoDS_Shell, TopoDS_Solid
 from scipy import interpolate
 
 from ..errors import GeometryError
 from .nurbs import _int_array, _real_array, is_valid, knots_and_mults
-from .solid import BranchPipe, _inside
+from .solid import FUZZY_MM, BranchPipe, _general_fuse, _History, _inside, _quick_volume, _subshapes
 
 __all__ = ["rotation_minimizing_normals", "tube_stations", "tube_surface", "tube_solid", "branch_pipe",
            "TUBE_TOL_MM"]
@@ -307,11 +308,6 @@ def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int
             ) -> tuple[TopoDS_Solid, tuple[TopoDS_Face, ...], TopoDS_Face, TopoDS_Face, float]:
     """Union of the pieces of a tube wall between consecutive ``bounds``, with its
     wall faces, its two end caps and its volume."""
-    from OCP.BRepCheck import BRepCheck_Analyzer
-    from OCP.TopAbs import TopAbs_FACE, TopAbs_SOLID
-
-    from .solid import FUZZY_MM, _general_fuse, _History, _quick_volume, _subshapes
-
     # Each piece gets its own copy of the surface: OCCT takes faces on one surface
     # object for the same domain and would not intersect the pieces where they cross.
     parts = [tube_solid(surface.Copy(), (v0, v1))
