@@ -17,7 +17,8 @@ monotone in both views, so the two trimmed surfaces have exactly one
 intersection curve, which OCCT walks from a start point. The ill-conditioned
 spans between pieces (and at the ends) are bridged along view A's rays by a
 cubic in depth that continues the neighbouring pieces (or meets the
-triangulated end points). All samples are fitted by one cubic B-spline over
+triangulated end points), moved onto the right side of curve B's folds by a
+dynamic program where needed and refined against curve B. All samples are fitted by one cubic B-spline over
 view A's curve parameter (C2, so the joins are smooth), returned as a
 ``Geom_BSplineCurve`` inside :class:`~vesselcad.kernel.Centreline3D`.
 
@@ -51,6 +52,17 @@ _DTW_STEP_PX = 1.0
 _DTW_MAX = 300
 #: Curve-parameter step (px) of the samples the final fit sees.
 _FIT_STEP_PX = 0.5
+#: Depth grid (mm) searched along view A's rays to track a bridged span, its margin
+#: beyond the span's first guess and its end depths, the candidates kept per ray, and the
+#: depth step (mm per ~1 px) that costs as much as one noise-sigma of image distance.
+_TRACK_STEP_MM = 0.25
+_TRACK_MARGIN_MM = 40.0
+_TRACK_BAND = 8
+_TRACK_STEP_SCALE_MM = 0.5
+_TRACK_PRIOR_MM = 10.0
+_TRACK_ROW_PX = 2.0
+_TRACK_MIN_PX = 8.0
+_TRACK_SWITCH_MM = 1.5
 #: Scale (mm) of the smoothness prior on the second difference of the bridged depth
 #: per half-pixel step.
 PRIOR_MM = 0.02
@@ -113,6 +125,13 @@ class _Branch:
         dir_b = np.sign(np.gradient(th_b))[j]
         thr = np.sin(np.radians(min_angle_deg))
         good = (cond_a[i] >= thr) & (cond_b[j] >= thr) & (np.abs(th_a[i] - th_b[j]) <= tol) & (dir_a == dir_b)
+        # Between two path samples a fitted curve may still turn back along the
+        # epipolar lines (a wiggle narrower than the sample step, seen with
+        # noisy input): the surfaces fold there and an intersection walk runs
+        # onto the fold. Such steps end a piece.
+        turn = self._turns(self.spl_a, self.ua[i], dir_a) | self._turns(self.spl_b, self.ub[j], dir_b)
+        good[:-1] &= ~turn
+        good[1:] &= ~turn
         self.pieces: list[dict[str, Any]] = []
         for k0, k1 in _runs(good):
             i0, i1, j0, j1 = i[k0], i[k1], j[k0], j[k1]
@@ -135,11 +154,45 @@ class _Branch:
             })
 
     # ----------------------------------------------------------- helpers
+    def _turns(self, spl: Any, u: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """For each step ``u[k] -> u[k+1]`` of a path: does the epipolar angle step against ``direction``?
+
+        Checked on the curve every quarter pixel of parameter (the path itself
+        samples every pixel or more).
+        """
+        view = self.view_a if spl is self.spl_a else self.view_b
+        a, b = float(spl.t[3]), float(spl.t[-4])
+        w = np.linspace(a, b, max(int(np.ceil((b - a) / 0.25)) + 1, 2))
+        d_th = np.diff(self.pair.theta_px(view, spl(w)))
+        up = np.concatenate([[0], np.cumsum(d_th > 0)])
+        down = np.concatenate([[0], np.cumsum(d_th < 0)])
+        # Dense index range covered by each path step (a step may be zero length).
+        p = np.clip(np.searchsorted(w, u, side="right") - 1, 0, len(w) - 1)
+        lo, hi = np.minimum(p[:-1], p[1:]), np.maximum(p[:-1], p[1:]) + 1
+        hi = np.minimum(hi, len(w) - 1)
+        against = np.where(direction[:-1] > 0, down[hi] - down[lo], up[hi] - up[lo])
+        return against > 0
+
     def rays_a(self, u: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Points on view A's rays through the curve at ``u``, at depth ``depth`` mm."""
         s = self.view_a.source
         det = self.view_a.pixel_to_detector(self.spl_a(u))
         return s + (depth / self.view_a.sid_mm)[:, None] * (det - s)
+
+    def ub_at(self, u: float, depth: float) -> float:
+        """Curve B's parameter nearest the projection of view A's ray point at ``u``, ``depth``.
+
+        Searched near the ordered correspondence, which is reliable at the ends
+        of well-conditioned pieces.
+        """
+        i, j = self.path
+        w_est = float(np.interp(u, self.ua[i], self.ub[j]))
+        q = self.view_b.project(self.rays_a(np.array([u]), np.array([depth])))[0]
+        half = 3.0 + 3.0 * max(self.sig_a, self.sig_b)
+        sel = np.flatnonzero(np.abs(self.b_dense_u - w_est) <= half)
+        if not len(sel):
+            return w_est
+        return float(self.b_dense_u[sel[np.argmin(np.linalg.norm(self.b_dense[sel] - q, axis=1))]])
 
     def end_depths(self) -> tuple[float, float]:
         """Depth (view A) of the triangulated first and last points of the two curves."""
@@ -319,8 +372,22 @@ def _bridge(br: _Branch, samples: list[np.ndarray]) -> tuple[list[np.ndarray], l
             xs, ds = xs[:-1], ds[:-1]
             fixed_r = np.insert(fixed_r, 0, depth[-1])
         if len(xs):
+            # Curve B's parameters at the span's two ends bound where its samples
+            # may match: the ordered correspondence is ambiguous inside the span.
+            ub_l = br.ub_at(u0, d0) if left is not None else br.dom_b[0]
+            ub_r = br.ub_at(u1, d1) if right is not None else br.dom_b[1]
+            w_est = np.interp(xs, br.ua[br.path[0]], br.ub[br.path[1]])
+            if h >= _TRACK_MIN_PX:  # shorter spans cannot hold a fold
+                tracked, w_tracked = _track_bridge(br, xs, ds, (ub_l, ub_r), (d0, d1),
+                                                   (left is not None, right is not None))
+                # The tracking decides on which side of curve B's folds the span
+                # lies; its fine shape follows the pixel noise. So it replaces the
+                # first guess only where that guess sits on another fold.
+                if np.max(np.abs(tracked - ds)) > _TRACK_SWITCH_MM:
+                    ds, w_est = tracked, w_tracked
             ds = _refine_bridge(br, xs, ds, fixed_l, fixed_r,
-                                (None if left is not None else end0, None if right is not None else end1))
+                                (None if left is not None else end0, None if right is not None else end1),
+                                w_est)
             depth = np.interp(x, xs, ds) if len(xs) > 1 else depth
             if left is not None:
                 depth[0] = d0
@@ -330,9 +397,103 @@ def _bridge(br: _Branch, samples: list[np.ndarray]) -> tuple[list[np.ndarray], l
     return bridges, spans
 
 
+def _to_polyline(q: np.ndarray, pb: np.ndarray, wu: np.ndarray, tree: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Distance of image points ``q`` to the polyline ``pb`` and the curve parameter there.
+
+    The nearest vertex (k-d ``tree`` of ``pb``), then the nearest point on the
+    two segments at it; ``wu`` are the vertices' curve parameters.
+    """
+    _, k = tree.query(q)
+    dist = np.full(len(q), np.inf)
+    uq = wu[k].astype(float)
+    for a_i, b_i in ((np.maximum(k - 1, 0), k), (k, np.minimum(k + 1, len(pb) - 1))):
+        ab = pb[b_i] - pb[a_i]
+        t = np.clip(np.einsum("ij,ij->i", q - pb[a_i], ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12),
+                    0.0, 1.0)
+        dd = np.linalg.norm(q - pb[a_i] - t[:, None] * ab, axis=1)
+        better = dd < dist
+        dist = np.where(better, dd, dist)
+        uq = np.where(better, wu[a_i] + t * (wu[b_i] - wu[a_i]), uq)
+    return dist, uq
+
+
+def _track_bridge(br: _Branch, x: np.ndarray, depth: np.ndarray, ub_range: tuple[float, float],
+                  d_ends: tuple[float, float], fixed: tuple[bool, bool]) -> tuple[np.ndarray, np.ndarray]:
+    """Starting depths and curve B parameters over an ill-conditioned span (dynamic programming).
+
+    Around the first guess ``depth`` (a cubic that continues the neighbouring
+    pieces) a grid of depth offsets along each of view A's rays is projected
+    into view B. Where the branch runs along the epipolar lines, several depths
+    project onto curve B: the true point and the other sides of curve B's
+    folds, which a local refinement cannot tell apart. The chain chosen here
+    lies on curve B (between its parameters at the span's ends), advances along
+    it in order, starts and ends at the span's known depths and parameters, and
+    otherwise keeps the first guess's shape; the regularized refinement starts
+    from it.
+    """
+    from scipy.spatial import cKDTree
+
+    half = 3.0 + 3.0 * max(br.sig_a, br.sig_b)
+    fallback = depth, np.interp(x, br.ua[br.path[0]], br.ub[br.path[1]])
+    sel = (br.b_dense_u >= min(ub_range) - half) & (br.b_dense_u <= max(ub_range) + half)
+    if np.count_nonzero(sel) < 3 or len(x) < 2:
+        return fallback
+    pb, wu = br.b_dense[sel], br.b_dense_u[sel]
+    tree = cKDTree(pb)
+    thr = 1.0 + 3.0 * max(br.sig_a, br.sig_b)
+    rising = ub_range[1] >= ub_range[0]
+    back_px = 0.5 + 3.0 * max(br.sig_a, br.sig_b)  # how far curve B may seem to step back
+    # A first guess that already lies on curve B and advances along it in order
+    # is on the right side of any fold: nothing to track.
+    dist0, u_first = _to_polyline(br.view_b.project(br.rays_a(x, depth)), pb, wu, tree)
+    steps = np.diff(u_first) if rising else -np.diff(u_first)
+    if np.all(dist0 <= thr) and np.all(steps >= -back_px):
+        return fallback
+    # Every ~1 px along the span (the refinement works on the full grid).
+    stride = max(int(round(_TRACK_ROW_PX / max(x[1] - x[0], 1e-9))), 1)
+    idx = np.unique(np.append(np.arange(0, len(x), stride), len(x) - 1))
+    xt, dt = x[idx], depth[idx]
+    offs = np.arange(-_TRACK_MARGIN_MM, _TRACK_MARGIN_MM + 1e-9, _TRACK_STEP_MM)
+    n, g = len(xt), len(offs)
+    s_a = br.view_a.source
+    det = br.view_a.pixel_to_detector(br.spl_a(xt))
+    dg = dt[:, None] + offs[None, :]
+    X = s_a + (dg[:, :, None] / br.view_a.sid_mm) * (det[:, None, :] - s_a)
+    dist, uq = _to_polyline(br.view_b.project(X.reshape(-1, 3)), pb, wu, tree)
+    dist, ug = dist.reshape(n, g), uq.reshape(n, g)
+    sig = max(br.sig_a, br.sig_b, 0.3)
+    cost = (np.minimum(dist, 3.0 * thr) / sig) ** 2 + (offs[None, :] / _TRACK_PRIOR_MM) ** 2
+    # End conditions: the known depth (a covered neighbour, else the
+    # triangulated branch end, looser) and curve B's parameter there.
+    for row, d_end, u_end, is_fixed in ((0, d_ends[0], ub_range[0], fixed[0]),
+                                        (n - 1, d_ends[1], ub_range[1], fixed[1])):
+        s_d = 0.5 if is_fixed else 2.0
+        cost[row] += ((dg[row] - d_end) / s_d) ** 2 + ((ug[row] - u_end) / half) ** 2
+    band = np.arange(-_TRACK_BAND, _TRACK_BAND + 1)
+    src = np.clip(np.arange(g)[:, None] + band[None, :], 0, g - 1)  # predecessor levels
+    trans = ((offs[src] - offs[:, None]) / _TRACK_STEP_SCALE_MM) ** 2
+    acc = cost[0]
+    back = np.zeros((n, g), dtype=np.intp)
+    for i in range(1, n):
+        du = ug[i][:, None] - ug[i - 1][src]
+        ok = (du >= -back_px) if rising else (du <= back_px)
+        tot = np.where(ok, acc[src] + trans, np.inf)
+        j = np.argmin(tot, axis=1)
+        back[i] = src[np.arange(g), j]
+        acc = tot[np.arange(g), j] + cost[i]
+    if not np.isfinite(acc).any():
+        return fallback
+    chain = np.empty(n, dtype=np.intp)
+    chain[-1] = int(np.argmin(acc))
+    for i in range(n - 1, 0, -1):
+        chain[i - 1] = back[i, chain[i]]
+    rows = np.arange(n)
+    return np.interp(x, xt, dg[rows, chain]), np.interp(x, xt, ug[rows, chain])
+
+
 def _refine_bridge(br: _Branch, x: np.ndarray, depth: np.ndarray, fixed_left: np.ndarray | None,
                    fixed_right: np.ndarray | None, anchors: tuple[float | None, float | None],
-                   iterations: int = 6) -> np.ndarray:
+                   w_est: np.ndarray, iterations: int = 6) -> np.ndarray:
     """Depths along view A's rays over an ill-conditioned span, by regularized Gauss-Newton.
 
     Minimizes the squared distance (px) of the projections into view B from
@@ -345,16 +506,14 @@ def _refine_bridge(br: _Branch, x: np.ndarray, depth: np.ndarray, fixed_left: np
     left = np.empty(0) if fixed_left is None else fixed_left
     right = np.empty(0) if fixed_right is None else fixed_right
     nl, nr = len(left), len(right)
-    sigma_px = max(0.3 * max(br.sig_a, br.sig_b), 0.01)
+    sigma_px = max(br.sig_a, br.sig_b, 0.01)  # the estimated pixel noise of the input
     w_data = 1.0 / sigma_px**2
     w_prior = 1.0 / PRIOR_MM**2
     m = nl + n + nr
-    # Each sample may only match curve B near where the ordered correspondence
-    # puts it: inside a fold the other side of curve B is close in the image
-    # but far along the curve, and must not capture the sample.
+    # Each sample may only match curve B near the point the tracking put it
+    # on: inside a fold the other side of curve B is close in the image but
+    # far along the curve, and must not capture the sample.
     pb, wu = br.b_dense, br.b_dense_u
-    i_path, j_path = br.path
-    w_est = np.interp(x, br.ua[i_path], br.ub[j_path])
     half = 3.0 + 3.0 * max(br.sig_a, br.sig_b)
     m_win = int(np.ceil(2 * half / (wu[1] - wu[0]))) + 2
     base = np.clip(np.searchsorted(wu, w_est - half), 0, max(len(wu) - m_win, 0))

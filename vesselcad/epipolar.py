@@ -135,16 +135,26 @@ def backtrack(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Walks back from the last cell, each time to the cheapest of the diagonal,
     upper and left neighbours (a sequential walk: each step depends on the last).
     """
-    i, j = D.shape[0] - 1, D.shape[1] - 1
+    na, nb = D.shape
+    # The step taken back out of every cell, for all cells at once (0 diagonal,
+    # 1 up, 2 left; first row and column can only go left and up); the walk
+    # itself then only reads it.
+    move = np.empty((na, nb), dtype=np.int8)
+    move[0, :] = 2
+    move[:, 0] = 1
+    if na > 1 and nb > 1:
+        move[1:, 1:] = np.argmin(np.stack((D[:-1, :-1], D[:-1, 1:], D[1:, :-1])), axis=0)
+    flat = move.ravel().tolist()
+    i, j = na - 1, nb - 1
     path_i, path_j = [i], [j]
     while i > 0 or j > 0:
-        if i == 0:
-            j -= 1
-        elif j == 0:
+        k = flat[i * nb + j]
+        if k == 0:
+            i, j = i - 1, j - 1
+        elif k == 1:
             i -= 1
         else:
-            k = int(np.argmin((D[i - 1, j - 1], D[i - 1, j], D[i, j - 1])))
-            i, j = (i - 1, j - 1) if k == 0 else (i - 1, j) if k == 1 else (i, j - 1)
+            j -= 1
         path_i.append(i)
         path_j.append(j)
     return np.array(path_i[::-1]), np.array(path_j[::-1])
