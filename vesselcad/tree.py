@@ -570,7 +570,9 @@ class VesselTree:
         swept: dict[int, TreeBranch] = {}  # each branch as its pipe is swept (parents come first)
         for bid in tree.order():
             b = tree[bid]
-            spine, law, warns = b.spline, b.radius_law, list(b.warnings)
+            spine, warns = _smooth_kinks(b.spline, b.radius_law)
+            b = replace(b, spline=spine)
+            law, warns = b.radius_law, list(b.warnings) + warns
             r_parent = None
             if b.parent is not None:
                 # attach to the parent's pipe as swept (its radius clamped, its start moved)
@@ -819,6 +821,43 @@ def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> tupl
             f"within {float(np.linalg.norm(p[i[k]] - p[j[k]])):.2f} mm (radii {r[i[k]]:.2f} and "
             f"{r[j[k]]:.2f} mm); swept in {len(cuts) + 1} pieces (cut at "
             + ", ".join(f"{c:.1f}" for c in cuts) + " mm) that are fused"], cuts
+
+
+def _smooth_kinks(spine: interpolate.BSpline, law: interpolate.BSpline
+                  ) -> tuple[interpolate.BSpline, list[str]]:
+    """The spine smoothed where it bends tighter than its radius allows, within half a radius.
+
+    A vessel does not bend around a radius smaller than its own; a reconstructed
+    centreline does, where its points carry local errors (a kink of a few tenths
+    of a millimetre). Clamping the radius there would pinch the pipe to a thread
+    (a non-manifold tessellation), so the spine is first refitted with a rising
+    curvature penalty, as long as no point moves by more than half the local
+    radius; what remains is left to the radius clamp.
+    """
+    k = spine.k
+    a, e = float(spine.t[k]), float(spine.t[-k - 1])
+    s = np.linspace(a, e, max(int((e - a) / 0.25), 8) + 1)
+    r = np.asarray(law(s)).reshape(-1)
+    if np.all(r * curvature(spine, s) <= CURVATURE_FACTOR):
+        return spine, []
+    p = np.asarray(spine(s))
+    ends = np.r_[[0] * 20, [len(s) - 1] * 20]  # hold the ends
+    x, y = np.r_[s, s[ends]], np.vstack([p, p[ends]])
+    n_spans = max(len(spine.t) - 2 * k - 1, 1)
+    step = (e - a) / n_spans
+    best, shift = spine, np.zeros(len(s))
+    for lam in 10.0 ** np.arange(-3, 4):
+        cand = fit_pspline(x, y, step, float(lam), domain=(a, e))
+        moved = np.linalg.norm(np.asarray(cand(s)) - p, axis=1)
+        if np.any(moved > 0.5 * r):
+            break
+        best, shift = cand, moved
+        if np.all(r * curvature(cand, s) <= CURVATURE_FACTOR):
+            break
+    if best is spine:
+        return spine, []
+    return best, [f"centreline smoothed by up to {shift.max():.2f} mm where it bent tighter than its "
+                  f"radius / {CURVATURE_FACTOR}"]
 
 
 def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent: float | None
