@@ -86,6 +86,23 @@ def _merge(intervals: list[tuple[float, float]], gap: float) -> list[tuple[float
     return [(a, b) for a, b in out]
 
 
+def _turns(theta: np.ndarray, w: np.ndarray, u: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """For each step ``u[k] -> u[k+1]`` of a path: does the epipolar angle step against ``direction``?
+
+    ``theta`` is the curve's epipolar angle at the dense parameters ``w``
+    (every quarter pixel; the path itself samples every pixel or more).
+    """
+    d_th = np.diff(theta)
+    up = np.concatenate([[0], np.cumsum(d_th > 0)])
+    down = np.concatenate([[0], np.cumsum(d_th < 0)])
+    # Dense index range covered by each path step (a step may be zero length).
+    p = np.clip(np.searchsorted(w, u, side="right") - 1, 0, len(w) - 1)
+    lo, hi = np.minimum(p[:-1], p[1:]), np.maximum(p[:-1], p[1:]) + 1
+    hi = np.minimum(hi, len(w) - 1)
+    against = np.where(direction[:-1] > 0, down[hi] - down[lo], up[hi] - up[lo])
+    return against > 0
+
+
 class _Branch:
     """One branch pair prepared for either method: fits, samples, correspondence, pieces."""
 
@@ -129,7 +146,9 @@ class _Branch:
         # epipolar lines (a wiggle narrower than the sample step, seen with
         # noisy input): the surfaces fold there and an intersection walk runs
         # onto the fold. Such steps end a piece.
-        turn = self._turns(self.spl_a, self.ua[i], dir_a) | self._turns(self.spl_b, self.ub[j], dir_b)
+        wa = np.linspace(*self.dom_a, max(int(np.ceil(la / 0.25)) + 1, 4))
+        turn = (_turns(self.pair.theta_px(view_a, self.spl_a(wa)), wa, self.ua[i], dir_a)
+                | _turns(self.pair.theta_px(view_b, self.b_dense), self.b_dense_u, self.ub[j], dir_b))
         good[:-1] &= ~turn
         good[1:] &= ~turn
         self.pieces: list[dict[str, Any]] = []
@@ -154,25 +173,6 @@ class _Branch:
             })
 
     # ----------------------------------------------------------- helpers
-    def _turns(self, spl: Any, u: np.ndarray, direction: np.ndarray) -> np.ndarray:
-        """For each step ``u[k] -> u[k+1]`` of a path: does the epipolar angle step against ``direction``?
-
-        Checked on the curve every quarter pixel of parameter (the path itself
-        samples every pixel or more).
-        """
-        view = self.view_a if spl is self.spl_a else self.view_b
-        a, b = float(spl.t[3]), float(spl.t[-4])
-        w = np.linspace(a, b, max(int(np.ceil((b - a) / 0.25)) + 1, 2))
-        d_th = np.diff(self.pair.theta_px(view, spl(w)))
-        up = np.concatenate([[0], np.cumsum(d_th > 0)])
-        down = np.concatenate([[0], np.cumsum(d_th < 0)])
-        # Dense index range covered by each path step (a step may be zero length).
-        p = np.clip(np.searchsorted(w, u, side="right") - 1, 0, len(w) - 1)
-        lo, hi = np.minimum(p[:-1], p[1:]), np.maximum(p[:-1], p[1:]) + 1
-        hi = np.minimum(hi, len(w) - 1)
-        against = np.where(direction[:-1] > 0, down[hi] - down[lo], up[hi] - up[lo])
-        return against > 0
-
     def rays_a(self, u: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Points on view A's rays through the curve at ``u``, at depth ``depth`` mm."""
         s = self.view_a.source
