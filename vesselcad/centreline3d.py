@@ -403,6 +403,8 @@ def _to_polyline(q: np.ndarray, pb: np.ndarray, wu: np.ndarray, tree: Any) -> tu
     The nearest vertex (k-d ``tree`` of ``pb``), then the nearest point on the
     two segments at it; ``wu`` are the vertices' curve parameters.
     """
+    fin = np.all(np.isfinite(q), axis=1)  # points behind view B's source project to NaN
+    q = np.where(fin[:, None], q, pb[0])
     _, k = tree.query(q)
     dist = np.full(len(q), np.inf)
     uq = wu[k].astype(float)
@@ -414,7 +416,7 @@ def _to_polyline(q: np.ndarray, pb: np.ndarray, wu: np.ndarray, tree: Any) -> tu
         better = dd < dist
         dist = np.where(better, dd, dist)
         uq = np.where(better, wu[a_i] + t * (wu[b_i] - wu[a_i]), uq)
-    return dist, uq
+    return np.where(fin, dist, np.inf), uq
 
 
 def _track_bridge(br: _Branch, x: np.ndarray, depth: np.ndarray, ub_range: tuple[float, float],

@@ -123,9 +123,20 @@ def fit_curve_2d(points_px: Any, noise_px: float | None = None, name: str = "poi
         spl = interpolate.make_interp_spline(u, dense, k=3)
         return spl, sigma
     s = len(pts) * 2.0 * sigma**2
-    tck, _ = interpolate.splprep(pts.T, u=u, k=3, s=s, quiet=2)
-    t, c, k = tck
-    spl = interpolate.BSpline(np.asarray(t), np.stack(c, axis=1), k)
+    # FITPACK can return (with no error flag) a nearly interpolating fit that
+    # oscillates wildly between dense knots (seen on pixel staircases with a
+    # tiny noise estimate): such a fit leaves the points' bounding box, and a
+    # larger smoothing is tried instead.
+    lo, hi = pts.min(axis=0) - (2.0 + 4.0 * sigma), pts.max(axis=0) + (2.0 + 4.0 * sigma)
+    uu = np.linspace(u[0], u[-1], 4 * len(u))
+    for _ in range(12):
+        tck, _ = interpolate.splprep(pts.T, u=u, k=3, s=s, quiet=2)
+        t, c, k = tck
+        spl = interpolate.BSpline(np.asarray(t), np.stack(c, axis=1), k)
+        v = spl(uu)
+        if np.all(np.isfinite(v)) and np.all(v >= lo) and np.all(v <= hi):
+            break
+        s = max(2.0 * s, 0.01 * len(pts))
     return spl, sigma
 
 
