@@ -165,3 +165,43 @@ def test_bad_input():
     empty = vc.centreline_graph(np.zeros((512, 512), bool), VIEW_B)
     m = vc.match_graphs(VIEW_A, g, VIEW_B, empty)
     assert m.branch_pairs == [] and len([u for u in m.unmatched if u.kind == "branch"]) == len(g.branches)
+
+
+def test_continuation_grows_a_seed_pair_through_both_trees(graphs):
+    # From one pair on the first third of the trunk, the continuation alone (no landmark agreement
+    # used) must pair the rest of the tree, each vessel with itself, through both branch points.
+    from vesselcad.matching import BranchPair, _continuations
+
+    ga, gb = graphs
+    root_a = next(b for b in ga.branches if ga.root in (b.start, b.end))
+    root_b = next(b for b in gb.branches if gb.root in (b.start, b.end))
+    pa = root_a.points_px if root_a.start == ga.root else root_a.points_px[::-1]
+    pb = root_b.points_px if root_b.start == gb.root else root_b.points_px[::-1]
+    ka = len(pa) // 3
+    err = vc.reconstruction_error(VIEW_A, pa[ka], VIEW_B, pb).error_px
+    kb = int(np.argmin(err))
+    sa = vc.splines.arc_length(root_a.points_px)
+    sb = vc.splines.arc_length(root_b.points_px)
+    rev_a, rev_b = root_a.start != ga.root, root_b.start != gb.root
+    ra = (0.0, float(sa[ka])) if not rev_a else (float(sa[-1] - sa[ka]), float(sa[-1]))
+    rb = (0.0, float(sb[kb])) if not rev_b else (float(sb[-1] - sb[kb]), float(sb[-1]))
+    seed = BranchPair(a=root_a.index, b=root_b.index, a_range=ra, b_range=rb, reversed_a=rev_a,
+                      reversed_b=rev_b, start=(ga.root, gb.root), end=(None, None),
+                      points_a_px=pa[: ka + 1], points_b_px=pb[: kb + 1], radius_a_px=np.ones(ka + 1),
+                      radius_b_px=np.ones(kb + 1), radius_mm=2.0, error_px=0.0, error_mm=0.0)
+    mm = float(np.mean(VIEW_A.mm_per_px))
+    grown = _continuations(VIEW_A, VIEW_B, ga, gb, [seed], 3.0, mm, mm)
+    # Every branch of both views is reached, and most of each view's tree is paired.
+    assert {p.a for p in grown} == set(range(5)) and {p.b for p in grown} == set(range(5))
+    total_a = sum(b.length_px for b in ga.branches)
+    assert (sum(p.length_a_px for p in grown) + ka) / total_a > 0.85
+    for p in grown:
+        if min(len(p.points_a_px), len(p.points_b_px)) < 4:
+            continue
+        # Each piece triangulates onto one vessel of the 3D tree: the views agree on which.
+        name = _name_of(p, None, ga)
+        x = vc.triangulate(VIEW_A, p.points_a_px, VIEW_B, p.points_b_px)
+        d = np.min(np.linalg.norm(x[:, None] - curve(TREE[name][1], 800)[None], axis=-1), axis=1)
+        assert np.median(d) < 1.0, name
+        # Pieces run proximal to distal along view A's branches.
+        assert not p.reversed_a

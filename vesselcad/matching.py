@@ -338,7 +338,7 @@ def _depths(graph: CentrelineGraph) -> dict[int, int]:
 
 def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
                  graph_b: CentrelineGraph, *, landmark_tol_px: float = LANDMARK_TOL_PX,
-                 branch_tol_px: float = BRANCH_TOL_PX) -> GraphMatch:
+                 branch_tol_px: float = BRANCH_TOL_PX, continuation: bool = True) -> GraphMatch:
     """Pair the landmarks and branches of two views' centreline graphs.
 
     Every branch of one view is a candidate partner of every branch, or chain
@@ -445,6 +445,11 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         if depth_a.get(c.pa.nodes[0], 0) > depth_a.get(far, 0):
             pieces = [_flip(q) for q in pieces[::-1]]
         pairs.extend(pieces)
+    if continuation:
+        more = _continuations(view_a, view_b, ga, gb, pairs, branch_tol_px, mm_a, mm_b)
+        pairs.extend(more)
+        used_a = used_a | {p.a for p in more}
+        used_b = used_b | {p.b for p in more}
     order = {id(p): k for k, p in enumerate(pairs)}
     pairs.sort(key=lambda p: (depth_a.get(p.start[0], 0) if p.start[0] is not None else 1e9, order[id(p)]))
 
@@ -655,6 +660,77 @@ def _select(cands: list[_Cand]) -> tuple:
     chosen = [cands[k] for k in np.flatnonzero(res.x[:nc] > 0.5)]
     chosen.sort(key=lambda c: -c.gain)
     return _select_greedy(chosen)
+
+
+def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph,
+                   pairs: list[BranchPair], tol: float, mm_a: float, mm_b: float) -> list[BranchPair]:
+    """Pairs grown from the ends of ``pairs`` along both skeleton graphs (:mod:`vesselcad.continuation`)."""
+    from . import continuation as cont
+
+    cha, chb = cont.chains(ga), cont.chains(gb)
+    used_a = np.zeros(len(cha.pts), bool)
+    used_b = np.zeros(len(chb.pts), bool)
+    for p in pairs:
+        for ch, used, k, (lo, hi) in ((cha, used_a, p.a, p.a_range), (chb, used_b, p.b, p.b_range)):
+            on = ch.branch == k
+            used[on & (ch.arc >= lo - 0.5 * STEP_PX) & (ch.arc <= hi + 0.5 * STEP_PX)] = True
+    anchors = []
+    for p in pairs:
+        for at_end in (True, False):
+            ends = []
+            for ch, k, (lo, hi), rev in ((cha, p.a, p.a_range, p.reversed_a),
+                                         (chb, p.b, p.b_range, p.reversed_b)):
+                # Leaving the pair past its last point runs the way the pair runs, past its first point back.
+                forward = (not rev) if at_end else rev
+                ends.extend(ch.position(k, hi if forward else lo, forward))
+            anchors.append(tuple(ends))
+    free_a, free_b = ~used_a, ~used_b
+    for ca, ta, cb, tb in anchors:
+        free_a[cha.idx[ca, ta]] = free_b[chb.idx[cb, tb]] = True
+    se = cont.sample_errors(va, vb, cha, chb, free_a, free_b)
+    # Grow from view A's side, then from view B's (a vessel that view A shows as one branch but
+    # view B through a branch point, or the other way round), until neither finds more.
+    found: list[cont.Continuation] = []
+    swap = lambda anc: [(cb, tb, ca, ta) for ca, ta, cb, tb in anc]  # noqa: E731
+    for _round in range(4):
+        got, new = cont.continue_pairs(se, cha, chb, used_a, used_b, anchors, tol, mm_a, mm_b)
+        anchors = anchors + new
+        got_b, new_b = cont.continue_pairs(se.T, chb, cha, used_b, used_a, swap(anchors), tol, mm_b, mm_a)
+        anchors = anchors + swap(new_b)
+        found += got + [cont.Continuation(c.gain, c.cost, c.ib, c.ia, c.err, c.anchor) for c in got_b]
+        if not got_b:
+            break
+    out: list[BranchPair] = []
+    for c in found:
+        ka, kb = cha.branch[c.ia], chb.branch[c.ib]
+        brk = np.flatnonzero((np.diff(ka) != 0) | (np.diff(kb) != 0)) + 1
+        for lo, hi in zip(np.r_[0, brk], np.r_[brk, len(ka)], strict=True):
+            sa, sb = c.ia[lo:hi], c.ib[lo:hi]
+            if len(np.unique(sa)) < 2 or len(np.unique(sb)) < 2:
+                continue
+            ends_a, ends_b = cha.arc[sa[[0, -1]]], chb.arc[sb[[0, -1]]]
+            n = max(int(np.ceil(max(abs(np.diff(ends_a))[0], abs(np.diff(ends_b))[0]))) + 1, 2)
+            pts_a, r_a = _along(ga.branches[int(ka[lo])], ends_a, n)
+            pts_b, r_b = _along(gb.branches[int(kb[lo])], ends_b, n)
+            err = float(c.err[lo:hi].mean())
+            q = BranchPair(
+                a=int(ka[lo]), b=int(kb[lo]), a_range=(float(ends_a.min()), float(ends_a.max())),
+                b_range=(float(ends_b.min()), float(ends_b.max())), reversed_a=bool(ends_a[1] < ends_a[0]),
+                reversed_b=bool(ends_b[1] < ends_b[0]), start=(None, None), end=(None, None),
+                points_a_px=pts_a, points_b_px=pts_b, radius_a_px=r_a, radius_b_px=r_b,
+                radius_mm=float(np.median(np.concatenate([r_a * mm_a, r_b * mm_b]))),
+                error_px=err, error_mm=err * 0.5 * (mm_a + mm_b))
+            out.append(_flip(q) if q.reversed_a else q)
+    return out
+
+
+def _along(branch: Any, ends: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` points and radii along a branch between two arc-length positions (in that order)."""
+    arc = arc_length(branch.points_px)
+    s = np.linspace(float(ends[0]), float(ends[1]), n)
+    pts = np.stack([np.interp(s, arc, branch.points_px[:, 0]), np.interp(s, arc, branch.points_px[:, 1])],
+                   axis=1)
+    return pts, np.interp(s, arc, branch.radius_px)
 
 
 def _gaps(ranges: list[tuple[float, float]], length: float) -> list[tuple[float, float]]:

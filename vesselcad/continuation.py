@@ -1,0 +1,466 @@
+"""Continuation of matched branch pairs along both views' skeleton graphs (issue 3).
+
+The landmark-anchored pairing of :mod:`vesselcad.matching` needs a landmark
+that agrees across the views at one end at least. In a projection many
+vessel ends and bifurcations are lost (an overlap swallows a bifurcation, a
+device cuts a vessel, a junction is moved by a crossing), so whole stretches
+of vessel stay unpaired although both views show them.
+
+Any accepted pair is itself a correspondence: the vessel goes on past each
+end of its two pieces in both views. From every such end (and from every
+matched landmark) the unpaired continuation in view A (the rest of the
+branch, then each branch beyond the next branch point, up to
+``MAX_JUNCTIONS`` of them) is aligned with *the skeleton graph* of view B by
+an anchored local alignment: a dynamic program over the directed samples of
+every branch of view B, whose moves follow the skeleton through branch points
+(never turning back), so a vessel that view B shows as several branches
+(a false branch point at an overlap, a side branch hidden in view A) is
+followed as one. Each step costs the reconstruction error minus a threshold
+(plus the 3D-length tie-break of :func:`vesselcad.matching._dtw`), so the
+alignment runs exactly as far as the two views agree. Anchored at a known
+correspondence, it does not suffer the basic ambiguity of two views (any two
+curves spanning the same epipolar band reproject perfectly onto each other):
+a wrong partner must start at the same point and keep agreeing.
+
+Continuations are accepted best first (paired length times agreement times
+radius agreement); each accepted one adds its far end as a new anchor, and
+the same is done with the roles of the views swapped, until nothing more
+agrees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .centreline2d import CentrelineGraph
+from .geometry import CArmView, triangulate
+from .splines import arc_length
+
+#: Samples along every branch are this far apart (px).
+STEP_PX = 2.0
+#: Errors are capped at this (px).
+CAP_PX = 12.0
+#: 3D steps are capped at this (mm).
+CAP_MM = 10.0
+#: Weight (px per mm) of the 3D length of the alignment (tie-break along epipolar lines).
+LENGTH_WEIGHT = 1.0
+#: A continuation runs while the error stays below this share of the branch tolerance.
+TAU = 0.5
+#: Share of the per-step reward that a step along view B earns (a step along view A earns it all).
+B_SHARE = 0.3
+#: Branch points of view A a continuation may pass.
+MAX_JUNCTIONS = 1
+#: Stop the dynamic program once every state is this much worse than the best so far (px).
+STOP_PX = 8.0
+#: Shortest continuation kept (px in both views).
+MIN_PX = 8.0
+#: Width (log of the radius ratio) of the radius agreement factor.
+RADIUS_SIGMA = 0.5
+#: Continuations whose radius agreement factor is below this are dropped.
+MIN_RADIUS_AGREEMENT = 0.2
+#: Branch points passed in the two views within this many alignment cells are the same one.
+JOIN_CELLS = 8
+_BLOCKED = 1e4
+
+
+@dataclass
+class Chains:
+    """One view's branches sampled every ``STEP_PX``, each as two directed chains.
+
+    Chain ``2k`` walks branch ``k`` in its own point order, chain ``2k + 1``
+    the other way; ``succ[c]`` lists the chains that continue chain ``c``
+    through the landmark at its end (other branches only: no turning back).
+    """
+
+    pts: np.ndarray  # (S, 2) samples
+    radius: np.ndarray  # (S,) radius px
+    branch: np.ndarray  # (S,) branch index
+    arc: np.ndarray  # (S,) arc length along the branch (own order)
+    idx: np.ndarray  # (C, L) sample index at each chain position, -1 past the end
+    n: np.ndarray  # (C,) chain lengths
+    start_node: np.ndarray  # (C,)
+    end_node: np.ndarray  # (C,)
+    succ: list[list[int]]
+    pred: list[list[int]]
+
+    @property
+    def n_chains(self) -> int:
+        return len(self.n)
+
+    def position(self, branch: int, arc: float, forward: bool) -> tuple[int, int]:
+        """Chain and position of the sample nearest ``arc`` on ``branch``, walking forward or back."""
+        c = 2 * branch + (0 if forward else 1)
+        s = self.arc[self.idx[c, : self.n[c]]]
+        return c, int(np.argmin(np.abs(s - arc)))
+
+
+def chains(graph: CentrelineGraph) -> Chains:
+    """Sample a centreline graph into directed chains (see :class:`Chains`)."""
+    pts, rad, br, arcs, offs = [], [], [], [], [0]
+    for b in graph.branches:
+        a = arc_length(b.points_px)
+        L = float(a[-1])
+        n = max(int(np.ceil(L / STEP_PX)) + 1, 2)
+        s = np.linspace(0.0, L, n)
+        pts.append(np.stack([np.interp(s, a, b.points_px[:, 0]), np.interp(s, a, b.points_px[:, 1])], axis=1))
+        rad.append(np.interp(s, a, b.radius_px))
+        br.append(np.full(n, b.index))
+        arcs.append(s)
+        offs.append(offs[-1] + n)
+    nb = len(graph.branches)
+    lens = np.diff(offs)
+    width = int(lens.max()) if nb else 1
+    idx = np.full((2 * nb, width), -1, dtype=np.int64)
+    start = np.empty(2 * nb, dtype=np.int64)
+    end = np.empty(2 * nb, dtype=np.int64)
+    for k, b in enumerate(graph.branches):
+        seq = np.arange(offs[k], offs[k + 1])
+        idx[2 * k, : lens[k]] = seq
+        idx[2 * k + 1, : lens[k]] = seq[::-1]
+        start[2 * k], end[2 * k] = b.start, b.end
+        start[2 * k + 1], end[2 * k + 1] = b.end, b.start
+    out: dict[int, list[int]] = {}
+    for c in range(2 * nb):
+        out.setdefault(int(start[c]), []).append(c)
+    succ = [[d for d in out.get(int(end[c]), []) if d // 2 != c // 2] for c in range(2 * nb)]
+    pred: list[list[int]] = [[] for _ in range(2 * nb)]
+    for c, ds in enumerate(succ):
+        for d in ds:
+            pred[d].append(c)
+    cat = (lambda x: np.concatenate(x)) if nb else (lambda x: np.zeros(0))
+    return Chains(cat(pts).reshape(-1, 2), cat(rad), cat(br).astype(np.int64), cat(arcs), idx,
+                  np.asarray(lens, dtype=np.int64).repeat(2) if nb else np.zeros(0, np.int64), start, end,
+                  succ, pred)
+
+
+@dataclass
+class Continuation:
+    """An accepted alignment: samples of view A (``ia``) against samples of view B (``ib``)."""
+
+    gain: float
+    cost: float
+    ia: np.ndarray  # (m,) sample indices in view A's chains, along the alignment (repeats allowed)
+    ib: np.ndarray  # (m,) sample indices in view B's chains
+    err: np.ndarray  # (m,) reconstruction error px of each aligned cell
+    anchor: tuple[int, int, int, int] = (-1, -1, -1, -1)  # where it started (chain, position in A, in B)
+
+
+def _a_paths(ch: Chains, used: np.ndarray, c0: int, t0: int) -> list[np.ndarray]:
+    """Sample sequences of view A from (c0, t0) onward through up to ``MAX_JUNCTIONS`` branch points.
+
+    Each starts with the anchor sample (which may be paired) and stops before
+    the first sample already paired; past a branch point it goes on along
+    each other branch (never back the way it came).
+    """
+    out: list[np.ndarray] = []
+    stack = [(c0, t0, [ch.idx[c0, t0 : t0 + 1]], 0)]
+    while stack:
+        c, t, parts, depth = stack.pop()
+        seq = ch.idx[c, t + 1 : ch.n[c]]
+        stop = np.flatnonzero(used[seq])
+        parts = parts + [seq[: stop[0]] if len(stop) else seq]
+        nxt = [] if len(stop) or depth >= MAX_JUNCTIONS else [d for d in ch.succ[c] if not used[ch.idx[d, 1]]]
+        if not nxt:
+            out.append(np.concatenate(parts))
+        # A successor's first sample is the branch point again: go on from its second.
+        stack.extend((d, 0, parts, depth + 1) for d in nxt)
+    return [p for p in out if len(p) > 1]
+
+
+def _align(se: SampleErrors, chb: Chains, used_b: np.ndarray, a_seq: np.ndarray,
+           cb: int, tb: int, tau: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Anchored local alignment of view A's samples ``a_seq`` with view B's chains from (cb, tb).
+
+    Returns (score, A samples, B samples, errors) of the best alignment, or
+    None when none gains anything. Row 0 is the anchor (score 0).
+    """
+    C, L = chb.idx.shape
+    valid = chb.idx >= 0
+    sidx = np.where(valid, chb.idx, 0)
+    blocked = used_b[sidx] | ~valid
+    lw = LENGTH_WEIGHT
+    n = len(a_seq)
+    last = chb.n - 1
+    ptr = np.zeros((n, C, L), dtype=np.int8)  # 1 A-advance, 2 diagonal, 3 B-advance, 4/5 via a junction
+    jptr = np.full((n, C, 2), -1, dtype=np.int64)  # predecessor chain of position 0: (diagonal, B-advance)
+    D_prev = np.full((C, L), np.inf)
+    D_prev[cb, tb] = 0.0
+    X_prev = np.zeros((C, L, 3))
+    alive = np.zeros(C, bool)
+    alive[cb] = True
+    best, best_at = 0.0, None
+    rows = 0
+    for i in range(n):
+        # Work on the chains still in reach: those alive and the ones they lead into.
+        act = np.zeros(C, bool)
+        act[alive] = True
+        for c0 in np.flatnonzero(alive):
+            act[chb.succ[c0]] = True
+        act = np.flatnonzero(act)
+        s_act = sidx[act]
+        e, x = se.row(a_seq[i], s_act)
+        blk = blocked[act]
+        # A step of view A earns tau, a step of view B B_SHARE * tau: a longer path in view B
+        # (another vessel beyond a branch point) is not preferred for its length alone.
+        c = np.where(blk, _BLOCKED, e - B_SHARE * tau)
+        dh = np.zeros(c.shape)
+        dh[:, 1:] = _dist(x[:, 1:], x[:, :-1])
+        h = c + lw * dh
+        Dp, Xp = D_prev[act], X_prev[act]
+        if i == 0:
+            D0 = Dp.copy()
+            ptr_i = np.zeros(c.shape, dtype=np.int8)
+        else:
+            D0 = Dp + c + (B_SHARE - 1.0) * tau + lw * _dist(x, Xp)
+            ptr_i = np.ones(c.shape, dtype=np.int8)
+            diag = Dp[:, :-1] + 2.0 * c[:, 1:] + (B_SHARE - 1.0) * tau + lw * _dist(x[:, 1:], Xp[:, :-1])
+            take = diag < D0[:, 1:]
+            D0[:, 1:] = np.where(take, diag, D0[:, 1:])
+            ptr_i[:, 1:][take] = 2
+        links = [(r, f) for r, t in enumerate(act) for f in chb.pred[t] if alive[f]]
+        if i > 0:
+            for r, f in links:
+                v = (D_prev[f, last[f]] + 2.0 * c[r, 0] + (B_SHARE - 1.0) * tau
+                     + lw * _dist(x[r, 0], X_prev[f, last[f]]))
+                if v < D0[r, 0]:
+                    D0[r, 0] = v
+                    ptr_i[r, 0] = 4
+                    jptr[i, act[r], 0] = f
+        D = _scan(D0, h, ptr_i)
+        if links:
+            pos = {int(t): r for r, t in enumerate(act)}
+            changed = False
+            for r, f in links:
+                rf = pos.get(int(f))
+                if rf is None:
+                    continue
+                v = D[rf, last[f]] + c[r, 0] + lw * _dist(x[r, 0], x[rf, last[f]])
+                if v < D[r, 0] - 1e-12:
+                    D0[r, 0] = v
+                    ptr_i[r, 0] = 5
+                    jptr[i, act[r], 1] = f
+                    changed = True
+            if changed:
+                D = _scan(D0, h, ptr_i)
+        D = np.where(blk, np.inf, D)
+        if i == 0:
+            r0 = int(np.flatnonzero(act == cb)[0])
+            D[r0, tb] = 0.0
+            ptr_i[r0, tb] = 0
+        ptr[i, act] = ptr_i
+        m = float(D.min())
+        if i > 0 and m < best:
+            best = m
+            r, t = np.unravel_index(int(np.argmin(D)), D.shape)
+            best_at = (i, int(act[r]), int(t))
+        rows = i + 1
+        if m > best + STOP_PX:
+            break
+        D_prev = np.full((C, L), np.inf)
+        D_prev[act] = D
+        X_prev[act] = x
+        alive = np.zeros(C, bool)
+        alive[act[D.min(axis=1) <= best + STOP_PX]] = True
+    if best_at is None:
+        return None
+    # Trace back to the anchor.
+    i, c_, t_ = best_at
+    cells = []
+    while True:
+        cells.append((i, c_, t_))
+        p = ptr[i, c_, t_]
+        if i == 0 and c_ == cb and t_ == tb:
+            break
+        if p == 1:
+            i -= 1
+        elif p == 2:
+            i, t_ = i - 1, t_ - 1
+        elif p == 3:
+            t_ -= 1
+        elif p == 4:
+            c_ = int(jptr[i, c_, 0])
+            i, t_ = i - 1, int(last[c_])
+        elif p == 5:
+            c_ = int(jptr[i, c_, 1])
+            t_ = int(last[c_])
+        else:  # a start cell other than the anchor cannot occur
+            return None
+        if i < 0 or i >= rows:
+            return None
+    cells.reverse()
+    ci = np.array(cells)
+    ib = chb.idx[ci[:, 1], ci[:, 2]]
+    ia = a_seq[ci[:, 0]]
+    return best, ia, ib, se.at(ia, ib)
+
+
+def _dist(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Capped Euclidean distance (mm) along the last axis."""
+    d = p - q
+    return np.minimum(np.sqrt(np.einsum("...k,...k->...", d, d)), CAP_MM)
+
+
+def _scan(D0: np.ndarray, h: np.ndarray, ptr: np.ndarray) -> np.ndarray:
+    """Within-row relaxation along each chain: D[t] = min(D0[t], D[t-1] + h[t]) (pointer 3 where taken)."""
+    hc = np.cumsum(np.where(np.isfinite(h), h, _BLOCKED), axis=1)
+    with np.errstate(invalid="ignore"):
+        D = hc + np.minimum.accumulate(D0 - hc, axis=1)
+    D = np.where(np.isnan(D), np.inf, D)
+    moved = D < D0 - 1e-12
+    ptr[moved] = 3
+    return np.minimum(D, D0)
+
+
+@dataclass
+class SampleErrors:
+    """Reconstruction error (px, capped) and triangulated point (mm) of pairs of samples of two views.
+
+    Only samples still free (or anchors) are computed; any other pair reads
+    as the cap (those samples are blocked anyway).
+    """
+
+    E: np.ndarray  # (na + 1, nb + 1), last row and column: the cap
+    X: np.ndarray  # (na + 1, nb + 1, 3)
+    map_a: np.ndarray  # (S_a,) row of each sample of view A (na where not computed)
+    map_b: np.ndarray  # (S_b,)
+
+    def row(self, a: int, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ra, cb = self.map_a[a], self.map_b[b]
+        return self.E[ra][cb], self.X[ra][cb]
+
+    def at(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return self.E[self.map_a[a], self.map_b[b]]
+
+    @property
+    def T(self) -> SampleErrors:
+        return SampleErrors(self.E.T, self.X.transpose(1, 0, 2), self.map_b, self.map_a)
+
+
+def sample_errors(va: CArmView, vb: CArmView, cha: Chains, chb: Chains, free_a: np.ndarray,
+                  free_b: np.ndarray) -> SampleErrors:
+    """Errors and points of every pair of the samples flagged in ``free_a`` and ``free_b``."""
+    ia, ib = np.flatnonzero(free_a), np.flatnonzero(free_b)
+    pa, pb = cha.pts[ia][:, None, :], chb.pts[ib][None, :, :]
+    X = triangulate(va, pa, vb, pb)
+    ea = va.project(X) - pa
+    eb = vb.project(X) - pb
+    with np.errstate(invalid="ignore"):
+        E = np.sqrt(np.maximum(np.einsum("...k,...k->...", ea, ea), np.einsum("...k,...k->...", eb, eb)))
+    Ep = np.full((len(ia) + 1, len(ib) + 1), CAP_PX)
+    Ep[:-1, :-1] = np.minimum(np.nan_to_num(E, nan=CAP_PX), CAP_PX)
+    Xp = np.zeros((len(ia) + 1, len(ib) + 1, 3))
+    Xp[:-1, :-1] = np.nan_to_num(X, nan=1e6)
+    map_a = np.full(len(free_a), len(ia), dtype=np.int64)
+    map_a[ia] = np.arange(len(ia))
+    map_b = np.full(len(free_b), len(ib), dtype=np.int64)
+    map_b[ib] = np.arange(len(ib))
+    return SampleErrors(Ep, Xp, map_a, map_b)
+
+
+def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarray,
+                   used_b: np.ndarray, anchors: list[tuple[int, int, int, int]], tol: float,
+                   mm_a: float, mm_b: float) -> tuple[list[Continuation], list[tuple[int, int, int, int]]]:
+    """Grow pairs from ``anchors`` (chain and position in view A, in view B) as far as the views agree.
+
+    ``se`` comes from :func:`sample_errors` (view A samples by view B
+    samples; pass its transpose ``se.T`` to grow from view B). ``used_a``
+    and ``used_b`` (sample flags) are updated in place. The far end of each
+    new pair, and every point where it passes a branch point in either view,
+    become anchors in turn (the other branches there may continue from it);
+    they are returned with the new pairs.
+    """
+    tau = TAU * tol
+    out: list[Continuation] = []
+    new_anchors: list[tuple[int, int, int, int]] = []
+    queue = list(anchors)
+    cache: dict[tuple, tuple | None] = {}
+    while queue:
+        cands = []
+        for ca, ta, cb, tb in queue:
+            for seq in _a_paths(cha, used_a, ca, ta):
+                if len(seq) < 3:
+                    continue
+                key = (cb, tb, seq.tobytes())
+                res = cache.get(key, False)
+                # Blocking samples only removes alternatives: a best alignment that uses no newly
+                # paired sample stays the best.
+                if res is False or (res is not None and _touches(res[2], used_b)):
+                    res = _align(se, chb, used_b, seq, cb, tb, tau)
+                    cache[key] = res
+                if res is None:
+                    continue
+                score, ia, ib, err = res
+                la = STEP_PX * (len(np.unique(ia)) - 1)
+                lb = STEP_PX * (len(np.unique(ib)) - 1)
+                cost = float(err.mean())
+                if min(la, lb) < MIN_PX or cost > tol:
+                    continue
+                ra = float(np.median(cha.radius[ia])) * mm_a
+                rb = float(np.median(chb.radius[ib])) * mm_b
+                agree = float(np.exp(-(np.log(max(ra, 1e-6) / max(rb, 1e-6)) / RADIUS_SIGMA) ** 2))
+                if agree < MIN_RADIUS_AGREEMENT:
+                    continue
+                gain = min(la, lb) * (1.0 - cost / tol) * agree
+                anchor = (ca, ta, cb, tb)
+                cands.append((gain, anchor, Continuation(gain, cost, ia, ib, err, anchor)))
+        cands.sort(key=lambda g: -g[0])
+        queue = []
+        for _gain, anchor, cont in cands:
+            na, nb = cont.ia[1:], cont.ib[1:]
+            na = na[na != cont.ia[0]]
+            nb = nb[nb != cont.ib[0]]
+            if used_a[na].any() or used_b[nb].any():
+                if anchor not in queue:
+                    queue.append(anchor)  # try again with what is left
+                continue
+            used_a[na] = True
+            used_b[nb] = True
+            out.append(cont)
+            if anchor not in queue:
+                queue.append(anchor)  # other branches may continue from the same anchor
+            for new in _anchors_along(cha, chb, cont):
+                queue.append(new)
+                new_anchors.append(new)
+    return out, new_anchors
+
+
+def _anchors_along(cha: Chains, chb: Chains, cont: Continuation) -> list[tuple[int, int, int, int]]:
+    """Anchors on an accepted continuation: its far end and where it passes branch points.
+
+    Where both views pass a branch point within ``JOIN_CELLS`` cells of each
+    other it is the same bifurcation: the anchor puts both views at it, so the
+    other branches there can be paired with each other.
+    """
+    ka, kb = cha.branch[cont.ia], chb.branch[cont.ib]
+    ta = np.flatnonzero(np.diff(ka) != 0)  # last cells before view A passes a branch point
+    tb = np.flatnonzero(np.diff(kb) != 0)
+    out = []
+    for k in ta:
+        near = tb[np.abs(tb - k) <= JOIN_CELLS]
+        kk = int(near[np.argmin(np.abs(near - k))]) if len(near) else int(k)
+        out.append(_tip(cha, cont.ia[: k + 1]) + _tip(chb, cont.ib[: kk + 1]))
+    for k in tb:
+        near = ta[np.abs(ta - k) <= JOIN_CELLS]
+        if not len(near):
+            out.append(_tip(cha, cont.ia[: k + 1]) + _tip(chb, cont.ib[: k + 1]))
+    out.append(_tip(cha, cont.ia) + _tip(chb, cont.ib))
+    return out
+
+
+def _touches(samples: np.ndarray, used: np.ndarray) -> bool:
+    """Whether an alignment's samples (past its anchor) include one now paired."""
+    rest = samples[1:]
+    return bool(used[rest[rest != samples[0]]].any())
+
+
+def _tip(ch: Chains, samples: np.ndarray) -> tuple[int, int]:
+    """Chain and position of the last sample, oriented along the direction of travel."""
+    s = int(samples[-1])
+    k = int(ch.branch[s])
+    prev = next((int(q) for q in samples[::-1] if ch.branch[q] == k and q != s), None)
+    forward = prev is None or prev < s
+    c = 2 * k + (0 if forward else 1)
+    t = int(np.flatnonzero(ch.idx[c] == s)[0])
+    return c, t
