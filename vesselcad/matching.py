@@ -353,7 +353,9 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     chosen (an integer program solved with HiGHS): every landmark is paired
     with at most one landmark and every branch used once, so the result
     respects the topology of both trees; a chain matched to one branch marks
-    a branch point seen in one view only.
+    a branch point seen in one view only. Finally each accepted pair is
+    continued past its ends, along both views' skeleton graphs, for as long
+    as the two views agree (``continuation``).
 
     Parameters
     ----------
@@ -365,6 +367,11 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         Largest reconstruction error (px) of a landmark pair (plus the mean of
         their radii) and mean error along a branch pair. Raise them to find
         the pairs of a roughly calibrated geometry before refining it.
+    continuation : bool
+        Grow the accepted pairs past their ends along both views' skeleton
+        graphs, through branch points of either view, as far as the views
+        agree (:mod:`vesselcad.continuation`): reaches vessels whose landmarks
+        are lost in one view (default True).
 
     Returns
     -------
