@@ -162,6 +162,8 @@ def test_bad_input():
         vc.match_graphs(VIEW_A, g, VIEW_B, "graph")
     with pytest.raises(vc.ArgumentError, match="view_a"):
         vc.match_graphs(None, g, VIEW_B, g)
+    with pytest.raises(vc.ArgumentError, match="continuation"):
+        vc.match_graphs(VIEW_A, g, VIEW_B, g, continuation="no")
     empty = vc.centreline_graph(np.zeros((512, 512), bool), VIEW_B)
     m = vc.match_graphs(VIEW_A, g, VIEW_B, empty)
     assert m.branch_pairs == [] and len([u for u in m.unmatched if u.kind == "branch"]) == len(g.branches)

@@ -36,18 +36,10 @@ import numpy as np
 
 from .centreline2d import CentrelineGraph
 from .geometry import CArmView, triangulate
+from .matching import CAP_MM, CAP_PX, LENGTH_WEIGHT, RADIUS_SIGMA, STEP_PX
+from .matching import OPEN_TAU as TAU  # a continuation runs while the error stays below TAU * tol
 from .splines import arc_length
 
-#: Samples along every branch are this far apart (px).
-STEP_PX = 2.0
-#: Errors are capped at this (px).
-CAP_PX = 12.0
-#: 3D steps are capped at this (mm).
-CAP_MM = 10.0
-#: Weight (px per mm) of the 3D length of the alignment (tie-break along epipolar lines).
-LENGTH_WEIGHT = 1.0
-#: A continuation runs while the error stays below this share of the branch tolerance.
-TAU = 0.5
 #: Share of the per-step reward that a step along view B earns (a step along view A earns it all).
 B_SHARE = 0.3
 #: Branch points of view A a continuation may pass.
@@ -56,8 +48,6 @@ MAX_JUNCTIONS = 1
 STOP_PX = 8.0
 #: Shortest continuation kept (px in both views).
 MIN_PX = 8.0
-#: Width (log of the radius ratio) of the radius agreement factor.
-RADIUS_SIGMA = 0.5
 #: Continuations whose radius agreement factor is below this are dropped.
 MIN_RADIUS_AGREEMENT = 0.2
 #: Branch points passed in the two views within this many alignment cells are the same one.
@@ -403,11 +393,11 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
                 if agree < MIN_RADIUS_AGREEMENT:
                     continue
                 gain = min(la, lb) * (1.0 - cost / tol) * agree
-                anchor = (ca, ta, cb, tb)
-                cands.append((gain, anchor, Continuation(gain, cost, ia, ib, err, anchor)))
-        cands.sort(key=lambda g: -g[0])
+                cands.append(Continuation(gain, cost, ia, ib, err, (ca, ta, cb, tb)))
+        cands.sort(key=lambda c: -c.gain)
         queue = []
-        for _gain, anchor, cont in cands:
+        for cont in cands:
+            anchor = cont.anchor
             na, nb = cont.ia[1:], cont.ib[1:]
             na = na[na != cont.ia[0]]
             nb = nb[nb != cont.ib[0]]

@@ -392,6 +392,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     for tol, name in ((landmark_tol_px, "landmark_tol_px"), (branch_tol_px, "branch_tol_px")):
         if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
             raise ArgumentError(f"{name}: expected a positive number of pixels, got {tol!r}")
+    if not isinstance(continuation, bool):
+        raise ArgumentError(f"continuation: expected True or False, got {continuation!r}")
     ga = _check_graph(graph_a, "graph_a")
     gb = _check_graph(graph_b, "graph_b")
     if not ga.branches or not gb.branches:
