@@ -109,6 +109,39 @@ def test_epipolar_baseline_agrees_on_exact_input():
     assert truth_distance(c.sample(300), truth).max() <= 0.05
 
 
+def test_intersection_samples_lie_on_both_surfaces_and_match_the_baseline():
+    """Every sample of the surface intersection projects onto both views' fitted curves (to 1e-6 px),
+    and the point-wise baseline finds the same points on the same windows (to its 0.25 px
+    linear interpolation on curve B)."""
+    from scipy.optimize import minimize_scalar
+
+    from vesselcad import centreline3d as c3
+
+    rng = np.random.default_rng(3)
+    truth = helix()
+    pa, pb = skeleton_like(truth, VA), skeleton_like(truth, VB)
+    pa, pb = pa + rng.normal(0.0, 0.5, pa.shape), pb + rng.normal(0.0, 0.5, pb.shape)
+    br = c3._Branch(VA, pa, VB, pb, None, 10.0, 150.0)
+    walked, _ = c3._intersect_nurbs(br)
+    base = c3._intersect_epipolar(br)
+    assert walked and len(walked) == len(base)
+    for w, e in zip(walked, base, strict=True):
+        u, X = w[:, 0], w[:, 1:]
+        # On view A's ray at u (so on surface A), and onto curve B (so on surface B).
+        assert np.allclose(VA.project(X), br.spl_a(u), atol=1e-6)
+        grid = np.linspace(*br.dom_b, 20001)
+        dense = br.spl_b(grid)
+        for q in VB.project(X)[:: max(len(X) // 15, 1)]:
+            t0 = grid[np.argmin(np.sum((dense - q) ** 2, axis=1))]
+            near = minimize_scalar(lambda t, q=q: float(np.sum((br.spl_b(t) - q) ** 2)),
+                                   bounds=(t0 - 0.01, t0 + 0.01), method="bounded", options={"xatol": 1e-12})
+            assert np.sqrt(near.fun) < 1e-6
+        # Same parameter grid; the same points up to the baseline's interpolation.
+        common, iw, ie = np.intersect1d(u, e[:, 0], return_indices=True)
+        assert len(common) >= 0.9 * len(u)
+        assert np.abs(X[iw] - e[ie, 1:]).max() < 0.01
+
+
 def test_noisy_skeleton_accuracy():
     rng = np.random.default_rng(7)
     truth = helix()

@@ -14,7 +14,8 @@ along a globally ordered epipolar correspondence (:mod:`vesselcad.epipolar`),
 into pieces on which the tangent keeps at least ``min_angle_deg`` from the
 epipolar line in both views. On such a piece the epipolar angle is strictly
 monotone in both views, so the two trimmed surfaces have exactly one
-intersection curve, which OCCT walks from a start point. The ill-conditioned
+intersection curve, which OCCT walks from a start point (the walking points,
+interpolated onto a grid, are polished onto both surfaces). The ill-conditioned
 spans between pieces (and at the ends) are bridged along view A's rays by a
 cubic in depth that continues the neighbouring pieces (or meets the
 triangulated end points), moved onto the right side of curve B's folds by a
@@ -86,6 +87,26 @@ def _merge(intervals: list[tuple[float, float]], gap: float) -> list[tuple[float
     return [(a, b) for a, b in out]
 
 
+def _monotone_window(u: np.ndarray, theta: np.ndarray, lo: float, hi: float,
+                     at: float) -> tuple[float, float]:
+    """The part of ``[lo, hi]`` around ``at`` on which ``theta(u)`` is strictly monotone.
+
+    ``u`` is a dense parameter grid of the curve and ``theta`` its epipolar
+    angle there; the window is also clipped to the grid's range.
+    """
+    sel = np.flatnonzero((u >= lo) & (u <= hi))
+    if len(sel) < 3:
+        return max(lo, float(u[0])), min(hi, float(u[-1]))
+    step = np.sign(np.diff(theta[sel]))
+    k = int(np.clip(np.searchsorted(u[sel], at) - 1, 0, len(step) - 1))
+    if step[k] == 0:
+        return float(u[sel[max(k, 0)]]), float(u[sel[min(k + 1, len(sel) - 1)]])
+    same = step == step[k]
+    first = k - int(np.argmin(same[k::-1])) + 1 if not same[: k + 1].all() else 0
+    last = k + int(np.argmin(same[k:])) if not same[k:].all() else len(step)
+    return float(u[sel[first]]), float(u[sel[last]])
+
+
 def _turns(theta: np.ndarray, w: np.ndarray, u: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """For each step ``u[k] -> u[k+1]`` of a path: does the epipolar angle step against ``direction``?
 
@@ -147,8 +168,9 @@ class _Branch:
         # noisy input): the surfaces fold there and an intersection walk runs
         # onto the fold. Such steps end a piece.
         wa = np.linspace(*self.dom_a, max(int(np.ceil(la / 0.25)) + 1, 4))
-        turn = (_turns(self.pair.theta_px(view_a, self.spl_a(wa)), wa, self.ua[i], dir_a)
-                | _turns(self.pair.theta_px(view_b, self.b_dense), self.b_dense_u, self.ub[j], dir_b))
+        th_wa = self.pair.theta_px(view_a, self.spl_a(wa))
+        th_wb = self.pair.theta_px(view_b, self.b_dense)
+        turn = (_turns(th_wa, wa, self.ua[i], dir_a) | _turns(th_wb, self.b_dense_u, self.ub[j], dir_b))
         good[:-1] &= ~turn
         good[1:] &= ~turn
         self.pieces: list[dict[str, Any]] = []
@@ -160,10 +182,21 @@ class _Branch:
             X = triangulate(view_a, self.pa[i[ks]], view_b, self.pb[j[ks]])
             da, db = view_a.depth(X), view_b.depth(X)
             mid = ks[len(ks) // 2] - k0
+            # Curve B's window: the path's range plus a margin, cut to the run around the
+            # piece's middle on which B's epipolar angle is monotone (near the ends of a noisy
+            # fit it can hook back); view A's range cut to the angles that run reaches. On these
+            # windows the correspondence is one-to-one for both methods alike.
+            u_b = _monotone_window(self.b_dense_u, th_wb, float(self.ub[j0]) - 1.5, float(self.ub[j1]) + 1.5,
+                                   float(self.ub[j[ks[len(ks) // 2]]]))
+            on_b = (self.b_dense_u >= u_b[0]) & (self.b_dense_u <= u_b[1])
+            th_lo, th_hi = float(th_wb[on_b].min()), float(th_wb[on_b].max())
+            in_a = (wa >= self.ua[i0]) & (wa <= self.ua[i1]) & (th_wa >= th_lo) & (th_wa <= th_hi)
+            if np.count_nonzero(in_a) < 2:
+                continue
             self.pieces.append({
-                "u_a": (float(self.ua[i0]), float(self.ua[i1])),
-                "u_b": (max(float(self.ub[j0]) - 1.5, self.dom_b[0]),
-                        min(float(self.ub[j1]) + 1.5, self.dom_b[1])),
+                "u_a": (max(float(wa[in_a][0]) - 0.25, float(self.ua[i0])),
+                        min(float(wa[in_a][-1]) + 0.25, float(self.ua[i1]))),
+                "u_b": u_b,
                 "depth_a": (max(float(da.min()) - 10.0, 1.0), float(da.max()) + 10.0),
                 "depth_b": (max(float(db.min()) - 10.0, 1.0), float(db.max()) + 10.0),
                 "start": (float(self.ua[i[ks[mid]]]), float(da[mid]),
@@ -173,6 +206,10 @@ class _Branch:
             })
 
     # ----------------------------------------------------------- helpers
+    def ray_steps_a(self, u: np.ndarray) -> np.ndarray:
+        """Per unit of depth (mm), the step along view A's ray through the curve at ``u``, shape (n, 3)."""
+        return (self.view_a.pixel_to_detector(self.spl_a(u)) - self.view_a.source) / self.view_a.sid_mm
+
     def rays_a(self, u: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Points on view A's rays through the curve at ``u``, at depth ``depth`` mm."""
         s = self.view_a.source
@@ -204,7 +241,7 @@ class _Branch:
 
 
 def _walk_piece(surf_a: Any, surf_b: Any, p: dict[str, Any], start: tuple) -> list[np.ndarray]:
-    """Walk one piece from ``start``; the monotone part of each line as (u_a, x, y, z) rows."""
+    """Walk one piece from ``start``; the monotone part of each line as (u_a, x, y, z, u_b) rows."""
     from .kernel.intersect import PiecePair, intersect_piece
 
     piece = PiecePair(p["u_a"], p["u_b"], p["depth_a"], p["depth_b"], tuple(float(v) for v in start))
@@ -221,8 +258,51 @@ def _walk_piece(surf_a: Any, surf_b: Any, p: dict[str, Any], start: tuple) -> li
         run = np.maximum.accumulate(u_b) if forward else np.minimum.accumulate(u_b)
         keep = (u_b == run) & np.concatenate([[True], np.diff(line[:, 3]) > 1e-9])
         if np.count_nonzero(keep) >= 2:
-            out.append(np.column_stack([line[keep, 3], line[keep, :3]]))
+            out.append(np.column_stack([line[keep, 3], line[keep, :3], u_b[keep]]))
     return out
+
+
+def _polish(br: _Branch, u: np.ndarray, X: np.ndarray, w: np.ndarray, iterations: int = 4
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Points of the surfaces' intersection at view A's parameters ``u``, to machine precision.
+
+    ``X`` and ``w`` (curve B's parameters) are guesses interpolated between the
+    intersector's walking points. On view A's ray at ``u`` the point whose
+    projection into view B lies on curve B is found by Newton's method in
+    (depth, ``w``): the same curve, without the interpolation's error.
+    Returns the points (rows NaN where it does not converge within 1 mm of
+    the guess) and curve B's parameters.
+    """
+    va, vb = br.view_a, br.view_b
+    s = va.source
+    ray = br.ray_steps_a(u)
+    d = va.depth(X)
+    w = np.clip(w, *br.dom_b)
+    dspl_b = br.spl_b.derivative()
+    for _ in range(iterations):
+        q = vb.project(s + d[:, None] * ray)
+        dq = (vb.project(s + (d + 0.01)[:, None] * ray) - q) / 0.01
+        f = q - br.spl_b(w)
+        dc = -dspl_b(w)
+        det = dq[:, 0] * dc[:, 1] - dq[:, 1] * dc[:, 0]
+        ok = np.isfinite(det) & (np.abs(det) > 1e-12)
+        det = np.where(ok, det, 1.0)
+        step_d = np.where(ok, -(dc[:, 1] * f[:, 0] - dc[:, 0] * f[:, 1]) / det, 0.0)
+        step_w = np.where(ok, -(-dq[:, 1] * f[:, 0] + dq[:, 0] * f[:, 1]) / det, 0.0)
+        d = d + np.clip(step_d, -1.0, 1.0)
+        w = np.clip(w + np.clip(step_w, -1.0, 1.0), *br.dom_b)
+    X_new = s + d[:, None] * ray
+    # Where Newton does not land on curve B near the guess (the walk's last points at a trimmed
+    # end can lie off the intersection) the sample is dropped: NaN rows.
+    res = np.linalg.norm(vb.project(X_new) - br.spl_b(w), axis=1)
+    good = np.isfinite(res) & (res < 1e-6) & (np.linalg.norm(X_new - X, axis=1) < 1.0)
+    return np.where(good[:, None], X_new, np.nan), w
+
+
+def _piece_grid(p: dict[str, Any]) -> np.ndarray:
+    """View A's curve parameters at which a piece is sampled for the final fit (both methods)."""
+    u0, u1 = p["u_a"]
+    return np.linspace(u0, u1, max(int(np.ceil((u1 - u0) / _FIT_STEP_PX)) + 1, 2))
 
 
 def _intersect_nurbs(br: _Branch) -> tuple[list[np.ndarray], tuple[Any, Any]]:
@@ -238,38 +318,65 @@ def _intersect_nurbs(br: _Branch) -> tuple[list[np.ndarray], tuple[Any, Any]]:
     samples: list[np.ndarray] = []
     for p in br.pieces:
         walked = _walk_piece(surf_a, surf_b, p, p["start"])
-        # A walk can stop short of the piece's ends; walk again from a start in
-        # each uncovered part (the lines are one curve, so their union is too).
+        # A walk can stop short of the piece's ends or leave a hole inside it; walk
+        # again from a start in each uncovered part (the lines are one curve, so
+        # their union is too).
+        # OCCT's walk can stop at a point where it would go on from elsewhere, so
+        # each round starts from another place in the hole.
         lo, hi = p["u_a"]
-        for _ in range(2):
-            got = np.concatenate([w[:, 0] for w in walked]) if walked else np.empty(0)
-            gaps = []
-            if not len(got) or got.min() > lo + 2.0:
-                gaps.append((lo, got.min() if len(got) else hi))
-            if len(got) and got.max() < hi - 2.0:
-                gaps.append((got.max(), hi))
-            if not gaps:
+        for at in (0.5, 0.25, 0.75):
+            # Each walked line is one continuous stretch of the curve.
+            covered = _merge([(float(w[0, 0]), float(w[-1, 0])) for w in walked], gap=2.0)
+            edges = np.array([lo] + [x for ab in covered for x in ab] + [hi])
+            holes = [(a, b) for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a > 2.0]
+            if not holes:
                 break
-            for g0, g1 in gaps:
-                st = p["starts"]
-                k = int(np.argmin(np.abs(st[:, 0] - 0.5 * (g0 + g1))))
+            st = p["starts"]
+            for a, b in holes:
+                k = int(np.argmin(np.abs(st[:, 0] - (a + at * (b - a)))))
                 walked += _walk_piece(surf_a, surf_b, p, tuple(st[k]))
         if walked:
-            allp = np.vstack(walked)
-            allp = allp[np.argsort(allp[:, 0])]
-            keep = np.concatenate([[True], np.diff(allp[:, 0]) > 1e-6])
-            allp = allp[keep]
-            # Split where the union has a hole (a walk that never reached it).
-            gaps_u = np.diff(allp[:, 0])
-            cut = np.flatnonzero(gaps_u > 2.0 + 3.0 * float(np.median(gaps_u)) if len(gaps_u) else 0) + 1
-            for part in np.split(allp, cut):
-                u, X = part[:, 0], part[:, 1:]
+            # The lines are stretches of one curve: where they overlap keep one line's points
+            # (interleaving two lines' nearly equal points would make the interpolation ring).
+            parts, reach = [], -np.inf
+            for line in sorted(walked, key=lambda q: float(q[0, 0])):
+                line = line[line[:, 0] > reach + 0.1]
+                if len(line):
+                    parts.append(line)
+                    reach = float(line[-1, 0])
+            allp = np.vstack(parts)
+            # A line's points on the trimmed window's edge in curve B are where the walk
+            # left the piece, not always on the intersection: the polish recovers them.
+            w0, w1 = p["u_b"]
+            allp = allp[(allp[:, 4] > w0 + 1e-6) & (allp[:, 4] < w1 - 1e-6)]
+            if len(allp) < 2:
+                continue
+            # Split where no line covers the curve (a hole that no walk reached).
+            covered = _merge([(float(q[0, 0]), float(q[-1, 0])) for q in parts], gap=2.0)
+            which = np.searchsorted([a for a, _ in covered], allp[:, 0], side="right")
+            piece_grid = _piece_grid(p)
+            for k, (c0, c1) in enumerate(covered, start=1):
+                part = allp[which == k]
+                u, X, w = part[:, 0], part[:, 1:4], part[:, 4]
                 if len(u) < 2 or u[-1] - u[0] < 0.5:
                     continue
-                grid = np.linspace(u[0], u[-1], max(int(np.ceil((u[-1] - u[0]) / _FIT_STEP_PX)) + 1, 2))
-                Xg = interpolate.CubicSpline(u, X, axis=0)(grid) if len(u) >= 4 else np.stack(
-                    [np.interp(grid, u, X[:, c]) for c in range(3)], axis=1)
-                samples.append(np.column_stack([grid, Xg]))
+                # The walk's points are exact but unevenly spaced: resample them on the
+                # piece's grid (the one the epipolar baseline samples too) over the lines'
+                # reach and a pixel beyond (a walk can stop just short of a trimmed end);
+                # beyond the kept points the guesses are extrapolated and the polish decides.
+                grid = piece_grid[(piece_grid >= c0 - 1.0) & (piece_grid <= c1 + 1.0)]
+                if len(grid) < 2:
+                    continue
+                Xg = interpolate.CubicSpline(u, X, axis=0, extrapolate=True)(grid) if len(u) >= 4 else (
+                    interpolate.interp1d(u, X, axis=0, fill_value="extrapolate")(grid))
+                wg = interpolate.interp1d(u, w, fill_value="extrapolate")(grid)
+                Xp, wp = _polish(br, grid, Xg, wg)
+                ok = np.isfinite(Xp[:, 0]) & (wp >= p["u_b"][0]) & (wp <= p["u_b"][1])
+                # Each run of polished samples is kept on its own, so a dropped sample
+                # leaves a hole that the bridging fills.
+                for r0, r1 in _runs(ok):
+                    if r1 > r0:
+                        samples.append(np.column_stack([grid[r0 : r1 + 1], Xp[r0 : r1 + 1]]))
     return samples, (make_face(surf_a), make_face(surf_b))
 
 
@@ -277,8 +384,7 @@ def _intersect_epipolar(br: _Branch) -> list[np.ndarray]:
     """Per piece: epipolar line of each A sample crossed with curve B, mid-point triangulation."""
     samples: list[np.ndarray] = []
     for p in br.pieces:
-        u0, u1 = p["u_a"]
-        ua = np.linspace(u0, u1, max(int(np.ceil((u1 - u0) / _FIT_STEP_PX)) + 1, 2))
+        ua = _piece_grid(p)
         pa = br.spl_a(ua)
         th = br.pair.theta_px(br.view_a, pa)
         # Curve B densely (0.25 px) over the piece, where its epipolar angle is
@@ -522,10 +628,10 @@ def _refine_bridge(br: _Branch, x: np.ndarray, depth: np.ndarray, fixed_left: np
     win = np.minimum(base[:, None] + np.arange(m_win)[None, :], len(wu) - 1)
     d = depth.astype(float).copy()
     s_b = br.view_b
+    src, ray = br.view_a.source, br.ray_steps_a(x)
     for _ in range(iterations):
-        X = br.rays_a(x, d)
-        q = s_b.project(X)
-        q2 = s_b.project(br.rays_a(x, d + 0.01))
+        q = s_b.project(src + d[:, None] * ray)
+        q2 = s_b.project(src + (d + 0.01)[:, None] * ray)
         dq = (q2 - q) / 0.01
         k = win[np.arange(n), np.argmin(np.linalg.norm(pb[win] - q[:, None], axis=2), axis=1)]
         k = np.clip(k, 1, len(pb) - 2)

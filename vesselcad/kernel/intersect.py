@@ -25,9 +25,10 @@ __all__ = ["PiecePair", "intersect_piece"]
 #: Intersection tolerance (mm): far below any pixel.
 TOL_MM = 1e-7
 #: Largest parametric step of the walk (fraction of the ranges) and its chordal
-#: deflection: dense enough that the walked polyline is a faithful sample.
+#: deflection (mm): the walking points are exact; between them the caller
+#: interpolates and polishes onto both surfaces (``vesselcad.centreline3d``).
 UV_MAX_STEP = 0.05
-FLECHE = 1e-3
+FLECHE = 1e-2
 
 
 @dataclass(frozen=True)
