@@ -26,6 +26,15 @@ def _tree_dict(branches):
     return {"units": "mm", "frame": "LPS", "branches": branches}
 
 
+def _one_vessel_pipe(pts, radius, n):
+    """Pipe spec of a one-vessel tree of constant radius, ``n`` spine parameters and the radius law there."""
+    tree = vc.VesselTree.from_json(_tree_dict(
+        [{"id": 0, "parent": None, "points": pts.tolist(), "radius": [radius] * len(pts)}]))
+    spec = tree.pipe_specs()[0]
+    s = np.linspace(spec["spine"].t[3], spec["spine"].t[-4], n)
+    return spec, s, np.ravel(spec["radius"](s))
+
+
 def test_json_round_trip(tmp_path):
     pts = _helix()
     data = _tree_dict([
@@ -151,11 +160,7 @@ def test_radius_clamped_where_the_centreline_bends_tighter_than_the_vessel():
     arc = np.c_[3 * np.cos(t), 3 * np.sin(t), np.zeros_like(t)]
     pts = np.vstack([_line([3, -20, 0], [0, 1, 0], 20.0, 21)[:-1], arc,
                      _line([0, 3, 0], [-1, 0, 0], 20.0, 21)[1:]])
-    tree = vc.VesselTree.from_json(_tree_dict(
-        [{"id": 0, "parent": None, "points": pts.tolist(), "radius": [3.0] * len(pts)}]))
-    spec = tree.pipe_specs()[0]
-    s = np.linspace(spec["spine"].t[3], spec["spine"].t[-4], 3000)
-    r = np.ravel(spec["radius"](s))
+    spec, s, r = _one_vessel_pipe(pts, 3.0, 3000)
     assert np.all(r * curvature(spec["spine"], s) <= 0.8 + 0.02)
     assert r.max() == pytest.approx(3.0, abs=0.05)  # untouched on the straight parts
     # The spine may be smoothed there first, by at most half the radius.
@@ -212,11 +217,7 @@ def test_kink_in_a_reconstructed_centreline_is_smoothed_not_pinched():
     x = np.linspace(0.0, 40.0, 161)
     y = 0.5 / (1.0 + np.exp(-(x - 20.0) / 0.1))
     pts = np.c_[x, y, np.zeros_like(x)]
-    tree = vc.VesselTree.from_json(_tree_dict(
-        [{"id": 0, "parent": None, "points": pts.tolist(), "radius": [2.0] * len(pts)}]))
-    spec = tree.pipe_specs()[0]
-    s = np.linspace(spec["spine"].t[3], spec["spine"].t[-4], 2000)
-    r = np.ravel(spec["radius"](s))
+    spec, s, r = _one_vessel_pipe(pts, 2.0, 2000)
     assert np.all(r * curvature(spec["spine"], s) <= 0.8 + 0.02)
     assert r.min() >= 0.95 * 2.0
     dist = np.min(np.linalg.norm(spec["spine"](s)[:, None] - pts[None], axis=2), axis=1)

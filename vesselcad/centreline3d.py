@@ -212,9 +212,7 @@ class _Branch:
 
     def rays_a(self, u: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Points on view A's rays through the curve at ``u``, at depth ``depth`` mm."""
-        s = self.view_a.source
-        det = self.view_a.pixel_to_detector(self.spl_a(u))
-        return s + (depth / self.view_a.sid_mm)[:, None] * (det - s)
+        return self.view_a.source + np.asarray(depth, float)[:, None] * self.ray_steps_a(u)
 
     def ub_at(self, u: float, depth: float) -> float:
         """Curve B's parameter nearest the projection of view A's ray point at ``u``, ``depth``.
@@ -393,14 +391,11 @@ def _intersect_epipolar(br: _Branch) -> list[np.ndarray]:
         w0, w1 = p["u_b"]
         w = np.linspace(w0, w1, max(int(np.ceil((w1 - w0) / 0.25)) + 1, 2))
         th_b = br.pair.theta_px(br.view_b, br.spl_b(w))
-        # Keep the monotone run of the window around its middle (the margin may
-        # reach a turning point).
-        step_sign = np.sign(np.diff(th_b))
-        mid = len(step_sign) // 2
-        same = step_sign == step_sign[mid]
-        lo = mid - int(np.argmin(same[mid::-1])) + 1 if not same[: mid + 1].all() else 0
-        hi = mid + int(np.argmin(same[mid:])) if not same[mid:].all() else len(step_sign)
-        th_b, w = th_b[lo : hi + 1], w[lo : hi + 1]
+        # Keep the monotone run of the window around its middle (on this finer grid
+        # the window's edge may still touch a turning point).
+        lo, hi = _monotone_window(w, th_b, w0, w1, 0.5 * (w0 + w1))
+        run = (w >= lo) & (w <= hi)
+        th_b, w = th_b[run], w[run]
         if th_b[-1] < th_b[0]:
             th_b, w = th_b[::-1], w[::-1]
         inside = (th >= th_b[0]) & (th <= th_b[-1])
@@ -563,10 +558,8 @@ def _track_bridge(br: _Branch, x: np.ndarray, depth: np.ndarray, ub_range: tuple
     xt, dt = x[idx], depth[idx]
     offs = np.arange(-_TRACK_MARGIN_MM, _TRACK_MARGIN_MM + 1e-9, _TRACK_STEP_MM)
     n, g = len(xt), len(offs)
-    s_a = br.view_a.source
-    det = br.view_a.pixel_to_detector(br.spl_a(xt))
     dg = dt[:, None] + offs[None, :]
-    X = s_a + (dg[:, :, None] / br.view_a.sid_mm) * (det[:, None, :] - s_a)
+    X = br.view_a.source + dg[:, :, None] * br.ray_steps_a(xt)[:, None, :]
     dist, uq = _to_polyline(br.view_b.project(X.reshape(-1, 3)), pb, wu, tree)
     dist, ug = dist.reshape(n, g), uq.reshape(n, g)
     sig = max(br.sig_a, br.sig_b, 0.3)
