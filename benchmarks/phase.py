@@ -3,16 +3,24 @@
 Usage::
 
     python benchmarks/phase.py [--cases 21] [--frames 60] [--figure docs/img/phase_matrix.png]
+                               [--labels truth,model]
 
 For each case (anatomies cycle cs, lca, rca; run B acquired at other phases)
-the key points are detected from the ground-truth label masks (the
-segmentation model is not available yet) and matched with
-``vesselcad.match_phase``. Prints markdown tables: the key-point
-reconstruction error of the chosen pair (paper: 0.18 +- 0.08 mm) against no
-matching (frame 0 with frame 0, and a random pair: paper 1.73 +- 0.96 mm), the
-true phase difference of the chosen pair (goal <= 5 % of a cardiac cycle in
->= 90 % of cases), key-point detection error, and the time of a 100 x 100
-error matrix (goal <= 5 ms on 2 cores; paper 250 ms).
+the key points are detected from the phantom's ground-truth label masks (and,
+with ``--labels truth,model``, from the bundled segmentation model's labels of
+every frame, for the first two methods) and matched with
+``vesselcad.match_phase`` in four ways (the default, which uses the files'
+ECG; the default without ECG, i.e. image only; the paper's rule, the single
+pair with the least error, image only; a diagonal window of 4 with ECG).
+Prints markdown tables: the key-point reconstruction error of the chosen pair
+(paper: 0.18 +- 0.08 mm) against no matching (frame 0 with frame 0, and a
+random pair: paper 1.73 +- 0.96 mm), the true phase difference of the chosen
+pair (goal <= 5 % of a cardiac cycle in >= 90 % of cases), what the pair
+means for the reconstruction (the phantom's true vessel tree of frame A and
+of frame B projected into their views and triangulated: 3D error against the
+tree of frame A, and the same after removing the mean offset, i.e. the shape
+distortion), key-point detection error, and the time of a 100 x 100 error
+matrix (goal <= 5 ms on 2 cores; paper 250 ms).
 """
 
 from __future__ import annotations
@@ -26,8 +34,17 @@ import time
 import numpy as np
 
 import vesselcad as vc
+from vesselcad.geometry import triangulate
 from vesselcad.phantom import generate_case
 from vesselcad.phase import error_matrix, match_phase, plot_error_matrix
+
+# name -> match_phase options; the first is the default and draws the figure.
+METHODS = {
+    "default (ECG)": {},
+    "default, no ECG": {"use_ecg": False},
+    "paper (window 0, no ECG)": {"window": 0, "use_ecg": False},
+    "window 4 + ECG": {"window": 4},
+}
 
 
 def circ(d: np.ndarray) -> np.ndarray:
@@ -35,7 +52,19 @@ def circ(d: np.ndarray) -> np.ndarray:
     return np.minimum(d, 1.0 - d)
 
 
-def _row(case, kind, m, t_match, rng, window):
+def _tree_points(tree):
+    return np.concatenate([np.asarray(b["points"], float) for b in tree["branches"]])
+
+
+def _tree_error(case, i, j):
+    """Mean 3D error (mm) of the true trees of frames (i, j) triangulated, and without the mean offset."""
+    xa, xb = _tree_points(case.run_a.trees[i]), _tree_points(case.run_b.trees[j])
+    va, vb = case.run_a.view, case.run_b.view
+    d = triangulate(va, va.project(xa), vb, vb.project(xb)) - xa
+    return float(np.linalg.norm(d, axis=1).mean()), float(np.linalg.norm(d - d.mean(0), axis=1).mean())
+
+
+def _row(case, kind, m, t_match, rng, method):
     """Metrics of one match against the case's ground truth."""
     obj = m.objects[0]
     det_a, det_b = m.keypoints_a[obj], m.keypoints_b[obj]
@@ -52,12 +81,13 @@ def _row(case, kind, m, t_match, rng, window):
     dist = circ(ph_a[:, None, 0] - ph_b[None, :, 0]) + circ(ph_a[:, None, 1] - ph_b[None, :, 1])
     oracle = np.unravel_index(np.argmin(np.where(elig, dist, np.inf)), dist.shape)
     truth_m = error_matrix(case.run_a.view, case.run_a.keypoints, case.run_b.view, case.run_b.keypoints)
-    return dict(
+    tree_3d, tree_shape = _tree_error(case, m.frame_a, m.frame_b)
+    return dict(tree_3d=tree_3d, tree_shape=tree_shape,
         kind=kind, obj=obj, chosen=m.error_mm, zero=m.matrix[0, 0], random=m.matrix[ii[pick], jj[pick]],
         mean_all=float(np.nanmean(m.matrix)), dc=dc, dr=dr,
         oracle_dc=circ(ph_a[oracle[0], 0] - ph_b[oracle[1], 0]),
         oracle_err=float(truth_m[oracle]), det=float(np.nanmean(det_err)),
-        found=float(np.isfinite(det_err).mean()), t_match=t_match, conf=m.confidence, window=window,
+        found=float(np.isfinite(det_err).mean()), t_match=t_match, conf=m.confidence, method=method,
     )
 
 
@@ -67,26 +97,44 @@ def main() -> int:
     ap.add_argument("--cases", type=int, default=21)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--figure", default="", help="write the error matrix of the first case here")
-    ap.add_argument("--windows", default="0,4", help="match_phase windows to compare (0 = the paper's)")
+    ap.add_argument("--labels", default="truth",
+                    help="label sources, comma-separated: truth (the phantom's label masks) and/or model "
+                         "(the bundled ONNX segmentation on every frame; the first two methods)")
     args = ap.parse_args()
 
     kinds = ["cs", "lca", "rca"]
-    windows = [int(w) for w in args.windows.split(",")]
+    sources = [x.strip() for x in args.labels.split(",") if x.strip()]
+    if not sources or set(sources) - {"truth", "model"}:
+        ap.error(f"--labels: expected truth and/or model, got {args.labels!r}")
+    segmenter = vc.Segmenter() if "model" in sources else None
+    methods = {}
+    for source in sources:
+        for k, (method, options) in enumerate(METHODS.items()):
+            if source == "truth":
+                methods[method] = ("truth", options)
+            elif k < 2:
+                methods[f"model labels, {method}"] = ("model", options)
     rows = []
     rng = np.random.default_rng(0)
     for k in range(args.cases):
         kind = kinds[k % 3]
         case = generate_case(200 + k, kind, n_frames=args.frames)
         run_a, run_b = case.xa_runs()
-        for window, ecg in [(w, True) for w in windows] + [(windows[-1], False)]:
+        first = None
+        labels = {}
+        if "truth" in sources:
+            labels["truth"] = (case.run_a.labels, case.run_b.labels)
+        if segmenter is not None:
+            labels["model"] = (segmenter(run_a.frames), segmenter(run_b.frames))
+        for method, (source, options) in methods.items():
             t0 = time.perf_counter()
-            m = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, window=window,
-                            use_ecg=ecg)
+            m = match_phase(run_a, run_b, *labels[source], **options)
             t_match = time.perf_counter() - t0
-            rows.append(_row(case, kind, m, t_match, rng, window if ecg else f"{window}, no ECG"))
+            rows.append(_row(case, kind, m, t_match, rng, method))
+            first = first or m
         if k == 0 and args.figure:
-            plot_error_matrix(m, args.figure, title=f"phantom {kind} seed {200 + k}: key point error "
-                              f"({m.objects[0]}), chosen pair circled")
+            plot_error_matrix(first, args.figure, title=f"phantom {kind} seed {200 + k}: key point error "
+                              f"({first.objects[0]}), chosen pair circled")
 
     va = vc.CArmView(primary_deg=-30, secondary_deg=20, sid_mm=1100, sod_mm=750,
                      pixel_spacing_mm=(0.4, 0.4), rows=512, cols=512)
@@ -103,7 +151,7 @@ def main() -> int:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}, "
           f"numpy {np.__version__}")
     print(f"\n### Key-point reconstruction error, {args.cases} unsynchronized phantom cases, "
-          f"2 x {args.frames} frames, 512² (key points detected from ground-truth labels)\n")
+          f"2 x {args.frames} frames, 512² (key points detected from the labels: {', '.join(sources)})\n")
     print("| method: anatomy | object | cases | chosen pair (mm) | frame 0 / frame 0 (mm) | "
           "random pair (mm) | all pairs mean (mm) | key point detection (px) | found |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -113,11 +161,10 @@ def main() -> int:
         return f"{v.mean():.3f} ± {v.std():.3f}"
 
     groups = []
-    for window in windows + [f"{windows[-1]}, no ECG"]:
-        label = "paper (window 0)" if window == 0 else f"window {window}"
-        sel = [r for r in rows if r["window"] == window]
-        groups += [(f"{label}: {kd}", [r for r in sel if r["kind"] == kd]) for kd in kinds]
-        groups.append((f"**{label}: all**", sel))
+    for method in methods:
+        sel = [r for r in rows if r["method"] == method]
+        groups += [(f"{method}: {kd}", [r for r in sel if r["kind"] == kd]) for kd in kinds]
+        groups.append((f"**{method}: all**", sel))
     for name, rs in groups:
         if not rs:
             continue
@@ -138,6 +185,16 @@ def main() -> int:
         print(f"| {name} | {len(rs)} | {dc.mean():.3f} | {dc.max():.3f} | {share:.0f} % | "
               f"{np.mean([r['dr'] for r in rs]):.3f} | {np.mean([r['oracle_dc'] for r in rs]):.3f} | "
               f"{np.mean([r['t_match'] for r in rs]):.2f} |")
+    print("\n### What the chosen pair means for the reconstruction (true trees of the two frames "
+          "triangulated)\n")
+    print("| method | cases | 3D error vs frame A's tree (mm) | p90 | shape error, mean offset removed (mm) "
+          "| p90 |")
+    print("|---|---|---|---|---|---|")
+    for method in methods:
+        rs = [r for r in rows if r["method"] == method]
+        e3, es = np.array([r["tree_3d"] for r in rs]), np.array([r["tree_shape"] for r in rs])
+        print(f"| {method} | {len(rs)} | {e3.mean():.3f} | {np.percentile(e3, 90):.3f} | {es.mean():.3f} | "
+              f"{np.percentile(es, 90):.3f} |")
     t = np.asarray(times) * 1000
     print("\n### Error matrix time, 100 x 100 pairs (goal <= 5 ms; paper 250 ms)\n")
     print("| median (ms) | p90 (ms) | min (ms) |")

@@ -102,6 +102,64 @@ def test_ecg_phase_from_r_waves_tracks_the_true_cardiac_phase():
     assert np.max(np.minimum(d, 1 - d)) < 0.07
 
 
+def _ecg_run(r_wave_ms, n=60, fps=15.0):
+    """A tiny run whose RWavePointer holds the frame nearest to each R-wave time."""
+    t = np.arange(n) * 1000.0 / fps
+    frames = np.zeros((n, 8, 8), np.uint8)
+    view = vc.CArmView(0.0, 0.0, 1100.0, 750.0, (0.4, 0.4), 8, 8)
+    r = np.asarray(r_wave_ms)
+    return vc.XARun(frames, view, t, r_wave_frames=np.rint(r / t[1]).astype(int)), t
+
+
+def test_ecg_phase_of_a_steady_rhythm_averages_the_frame_rounding_out():
+    # 73 bpm at 15 fps: RR is 12.33 frames, so each R-wave is rounded by a different fraction of a frame.
+    rr, t0 = 60000.0 / 73.0, 137.0
+    run, t = _ecg_run(t0 + rr * np.arange(5))
+    true = np.mod((t - t0) / rr, 1.0)
+    fitted, per_beat = ecg_phase(run), ecg_phase(run, steady_tolerance=0.0)
+
+    def err(p):
+        d = np.abs(p - true)
+        return np.minimum(d, 1 - d)
+
+    # Rounding alone moves an R-wave by up to half a frame, 0.5 / 12.33 = 0.041 cycle.
+    assert err(per_beat).max() > 0.02
+    assert err(fitted).max() < 0.5 * err(per_beat).max()
+    assert err(fitted).max() < 0.02
+
+
+def test_ecg_phase_of_an_irregular_rhythm_interpolates_between_r_waves():
+    # RR alternating 600 / 1000 ms (e.g. bigeminy): no straight line fits, so each beat is its own cycle.
+    r = np.cumsum([200.0, 600.0, 1000.0, 600.0, 1000.0])
+    run, t = _ecg_run(r)
+    ph = ecg_phase(run)
+    frames = run.r_wave_frames
+    tr = t[frames]
+    assert np.allclose(ph[frames], 0.0)  # every R-wave frame starts a cycle
+    mid = frames[1] + 4  # 4 frames (267 ms) into the 600 ms beat that starts at frame 12 (800 ms)
+    assert ph[mid] == pytest.approx((t[mid] - tr[1]) / (tr[2] - tr[1]))
+
+
+def test_ecg_fixes_the_cardiac_phase_of_the_chosen_pair():
+    case = generate_case(11, "rca", n_frames=40, rows=256, cols=256)
+    run_a, run_b = case.xa_runs()
+    pa, pb = case.run_a.phases[:, 0], case.run_b.phases[:, 0]
+    m = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels)
+    assert m.ecg and m.window == 0 and m.to_dict()["window"] == 0
+    d = abs(pa[m.frame_a] - pb[m.frame_b])
+    assert min(d, 1 - d) <= 0.05  # true cardiac phases within 5 % of a cycle
+    image_only = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, use_ecg=False)
+    assert not image_only.ecg and image_only.window == 4
+
+
+def test_match_phase_rejects_bad_ecg_arguments(sync_cs):
+    case, run_a, run_b = sync_cs
+    with pytest.raises(vc.VesselcadError, match="ecg_tolerance"):
+        match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, ecg_tolerance=0.0)
+    with pytest.raises(vc.VesselcadError, match="ecg_weight"):
+        match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, ecg_weight=-1.0)
+
+
 def test_unsynchronized_matching_beats_frame_zero_and_plots(tmp_path):
     case = generate_case(9, "cs", n_frames=40, rows=256, cols=256)
     run_a, run_b = case.xa_runs()
@@ -141,15 +199,15 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
 
 
 def test_pair_choice_prefers_filled_frames():
-    # seed 2000 (lca, 40 frames): without the fill preference the best phase pair puts run A in
-    # wash-out (about 60 % of its largest vessel area, proximal vessels already empty).
+    # seed 2000 (lca, 40 frames): without the fill preference the best phase pair has a frame below
+    # 90 % of its run's largest vessel area (run B at 89 %, in wash-in or wash-out).
     case = generate_case(2000, "lca", 40, rows=256, cols=256)
     ra, rb = case.xa_runs()
     la, lb = case.run_a.labels, case.run_b.labels
     area_a = (la == 1).sum(axis=(1, 2)) / (la == 1).sum(axis=(1, 2)).max()
     area_b = (lb == 1).sum(axis=(1, 2)) / (lb == 1).sum(axis=(1, 2)).max()
     off = match_phase(ra, rb, la, lb, prefer_fill=1.1)
-    assert min(area_a[off.frame_a], area_b[off.frame_b]) < 0.8
+    assert min(area_a[off.frame_a], area_b[off.frame_b]) < 0.9
     m = match_phase(ra, rb, la, lb)
     assert area_a[m.frame_a] >= 0.9 and area_b[m.frame_b] >= 0.9
     assert m.to_dict()["fill"] == [round(float(area_a[m.frame_a]), 3), round(float(area_b[m.frame_b]), 3)]

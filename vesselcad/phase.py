@@ -86,7 +86,8 @@ class PhaseMatch:
         Reconstruction error of every pair in mm (NaN where a key point is missing).
     score : numpy.ndarray, shape (N_A, N_B)
         What the pair is chosen by: ``matrix`` averaged along the diagonal
-        over ``match_phase``'s ``window`` (equal to ``matrix`` for window 0).
+        over ``match_phase``'s ``window`` (equal to ``matrix`` for window 0),
+        plus ``ecg_weight`` times the ECG phase difference when the ECG is used.
     objects : list of str
         The stationary object(s) used; with several, a pair's error is the largest.
     keypoints_a, keypoints_b : dict of str to (N, 2) arrays
@@ -105,6 +106,10 @@ class PhaseMatch:
     fill_a, fill_b : numpy.ndarray
         Vessel area of every frame as a share of the run's largest (contrast
         filling; all ones when the labels have no vessel class).
+    window : int
+        The diagonal window the pair was chosen with.
+    ecg : bool
+        Whether the ECG restriction and weight were applied.
     """
 
     frame_a: int
@@ -126,6 +131,8 @@ class PhaseMatch:
     warnings: list[str] = field(default_factory=list)
     fill_a: np.ndarray | None = None
     fill_b: np.ndarray | None = None
+    window: int = 0
+    ecg: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary (without the matrix)."""
@@ -142,6 +149,7 @@ class PhaseMatch:
             "point_mm": np.round(self.point_mm, 3).tolist(),
             "fill": None if self.fill_a is None else [round(float(self.fill_a[self.frame_a]), 3),
                                                       round(float(self.fill_b[self.frame_b]), 3)],
+            "window": self.window, "ecg": self.ecg,
             "warnings": list(self.warnings),
         }
 
@@ -330,11 +338,32 @@ def error_matrix(view_a: CArmView, points_a_px: Any, view_b: CArmView, points_b_
     return reconstruction_error(view_a, pa[:, None, :], view_b, pb[None, :, :]).error_mm
 
 
-def ecg_phase(run: XARun) -> np.ndarray | None:
+def ecg_phase(run: XARun, *, steady_tolerance: float = 0.75) -> np.ndarray | None:
     """Cardiac phase in [0, 1) per frame from the run's R-waves, or None.
 
-    Linear in time between consecutive R-waves; before the first and after the
-    last R-wave the mean RR interval is used. Needs at least two R-waves.
+    RWavePointer gives each R-wave as the number of the frame nearest to it, so
+    every R-wave time is off by up to half a frame (0.056 cycle at 100 bpm and
+    15 fps). When the R-waves fit a steady heart rate (a straight line through
+    their times, every residual within ``steady_tolerance`` frame intervals:
+    the rounding plus a little beat-to-beat variation), the phase comes from
+    that line, which averages the rounding out over the run's beats (on the
+    phantom: mean error 0.011 cycle instead of 0.018, largest 0.045 instead
+    of 0.056). Otherwise (an irregular rhythm, or only two R-waves) it is
+    linear in time between consecutive R-waves, with the mean RR interval
+    before the first and after the last. Needs at least two R-waves.
+
+    Parameters
+    ----------
+    run : XARun
+        A run with ``r_wave_frames`` (from RWavePointer) and ``frame_times_ms``.
+    steady_tolerance : float
+        Largest residual of the straight-line fit, in frame intervals, for
+        the heart rate to count as steady (0: always interpolate between R-waves).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        Shape (N,), or None when the run has fewer than two R-waves.
     """
     if run.r_wave_frames is None or len(run.r_wave_frames) < 2:
         return None
@@ -343,6 +372,13 @@ def ecg_phase(run: XARun) -> np.ndarray | None:
     rr = float(np.mean(np.diff(tr)))
     if rr <= 0:
         return None
+    if len(tr) >= 3 and steady_tolerance > 0:
+        beat = np.arange(len(tr), dtype=float)
+        slope, start = np.polyfit(beat, tr, 1)
+        frame_ms = float(np.median(np.diff(t))) if len(t) > 1 else rr
+        residual = np.abs(tr - (start + slope * beat))
+        if slope > 0 and residual.max() <= steady_tolerance * frame_ms:
+            return np.mod((t - start) / slope, 1.0)
     n_before = int(np.ceil((tr[0] - t[0]) / rr)) + 1
     n_after = int(np.ceil((t[-1] - tr[-1]) / rr)) + 1
     knots = np.r_[tr[0] - rr * np.arange(n_before, 0, -1), tr, tr[-1] + rr * np.arange(1, n_after + 1)]
@@ -395,9 +431,10 @@ def match_phase(
     min_contrast: float = 0.5,
     prefer_fill: float = 0.9,
     use_ecg: bool = True,
-    ecg_tolerance: float = 0.08,
+    ecg_tolerance: float = 0.06,
+    ecg_weight: float = 10.0,
     pair: tuple[int, int] | None = None,
-    window: int = 4,
+    window: int | None = None,
 ) -> PhaseMatch:
     """Choose the frame pair of two runs at the same motion phase (paper §2.3).
 
@@ -422,16 +459,27 @@ def match_phase(
         view cannot be reconstructed (1 or above: off).
     use_ecg : bool
         When both runs carry ECG R-waves (RWavePointer), only pairs whose ECG
-        cardiac phases differ by at most ``ecg_tolerance`` (cycle fraction)
-        are eligible, if any such pair has key points.
+        cardiac phases (:func:`ecg_phase`) differ by at most ``ecg_tolerance``
+        (cycle fraction) are eligible, if any such pair has key points, and
+        the phase difference is added to the score with ``ecg_weight``.
+    ecg_tolerance : float
+        Largest ECG phase difference of an eligible pair, in (0, 0.5].
+    ecg_weight : float
+        Millimetres added to a pair's score per cycle of ECG phase difference
+        (>= 0): at 10, a pair 0.05 cycle apart must agree 0.5 mm better than
+        an in-phase one to win. The key point alone constrains one direction
+        of motion, so among pairs within the tolerance it would otherwise
+        often pick one that is off in cardiac phase but agrees by coincidence.
     pair : (int, int), optional
         Force this frame pair (its error is still reported).
-    window : int
+    window : int, optional
         The pair is chosen by the weighted mean error over ``(i + k, j + k)``,
         ``|k| <= window`` (see :func:`diagonal_mean`): a single key point
         constrains only its motion across the epipolar plane, so some pair at
         another phase often agrees by coincidence; its neighbours do not.
-        ``window=0`` is the paper's choice by the single pair's error.
+        ``window=0`` is the paper's choice by the single pair's error. None
+        (default): 0 when the ECG restriction applies (the ECG then fixes the
+        cardiac phase and the pair's own error the rest), else 4.
 
     Returns
     -------
@@ -450,12 +498,15 @@ def match_phase(
         if lab.shape != run.frames.shape:
             raise ArgumentError(f"{name}: shape {lab.shape} does not match the run's frames "
                                 f"{run.frames.shape}")
-    if isinstance(window, bool) or int(window) != window or window < 0:
-        raise ArgumentError(f"window: expected a non-negative integer, got {window!r}")
-    # A short run cannot hold a window of window + 1 valid pairs on a diagonal: shrink it.
-    window = min(int(window), (min(run_a.n_frames, run_b.n_frames) - 1) // 2)
+    if window is not None and (isinstance(window, bool) or not isinstance(window, (int, np.integer))
+                               or window < 0):
+        raise ArgumentError(f"window: expected None or a non-negative integer, got {window!r}")
     if not 0.0 <= min_contrast <= 1.0:
         raise ArgumentError(f"min_contrast: expected a share in [0, 1], got {min_contrast}")
+    if not 0.0 < ecg_tolerance <= 0.5:
+        raise ArgumentError(f"ecg_tolerance: expected a cycle fraction in (0, 0.5], got {ecg_tolerance}")
+    if not ecg_weight >= 0.0:
+        raise ArgumentError(f"ecg_weight: expected mm per cycle >= 0, got {ecg_weight}")
     if not prefer_fill >= 0.0:
         raise ArgumentError(f"prefer_fill: expected a share >= 0, got {prefer_fill}")
     if objects == "auto":
@@ -492,23 +543,33 @@ def match_phase(
             for o in used]
     matrix = mats[0] if len(mats) == 1 else np.max(np.stack(mats), axis=0)
 
-    score = diagonal_mean(matrix, window)
     fill_a, fill_b = _fill(la), _fill(lb)
     elig_a, elig_b = fill_a >= min_contrast, fill_b >= min_contrast
-    allowed = elig_a[:, None] & elig_b[None, :] & np.isfinite(score)
+    allowed = elig_a[:, None] & elig_b[None, :] & np.isfinite(matrix)
     full_a, full_b = fill_a >= prefer_fill, fill_b >= prefer_fill
     if prefer_fill <= 1.0 and (allowed & full_a[:, None] & full_b[None, :]).any():
         elig_a, elig_b = elig_a & full_a, elig_b & full_b
         allowed &= full_a[:, None] & full_b[None, :]
+    ecg_diff = None
     if use_ecg:
         pa, pb = ecg_phase(run_a), ecg_phase(run_b)
         if pa is not None and pb is not None:
             d = np.abs(pa[:, None] - pb[None, :])
-            ecg_ok = np.minimum(d, 1 - d) <= ecg_tolerance
+            d = np.minimum(d, 1 - d)
+            ecg_ok = d <= ecg_tolerance
             if (allowed & ecg_ok).any():
                 allowed &= ecg_ok
+                ecg_diff = d
             else:
                 warnings_.append("ECG phases leave no pair with key points; ECG restriction ignored")
+    if window is None:
+        window = 0 if ecg_diff is not None else 4
+    # A short run cannot hold a window of window + 1 valid pairs on a diagonal: shrink it.
+    window = min(int(window), (min(run_a.n_frames, run_b.n_frames) - 1) // 2)
+    score = diagonal_mean(matrix, window)
+    if ecg_diff is not None:
+        score = score + ecg_weight * ecg_diff
+    allowed &= np.isfinite(score)
     if not allowed.any():
         if not (elig_a[:, None] & elig_b[None, :]).any() or not np.isfinite(matrix).any():
             raise PhaseError("labels_a/labels_b: no frame pair has key points in both runs among the "
@@ -548,7 +609,7 @@ def match_phase(
         keypoints_b={o: t.points_px for o, t in tracks_b.items()},
         eligible_a=elig_a, eligible_b=elig_b, runner_up=runner, runner_up_error_mm=runner_err,
         margin_mm=margin, confidence=confidence, point_mm=np.asarray(rec.points_mm), warnings=warnings_,
-        fill_a=fill_a, fill_b=fill_b,
+        fill_a=fill_a, fill_b=fill_b, window=window, ecg=ecg_diff is not None,
     )
 
 
