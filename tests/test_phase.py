@@ -152,12 +152,33 @@ def test_ecg_fixes_the_cardiac_phase_of_the_chosen_pair():
     assert not image_only.ecg and image_only.window == 4
 
 
+def test_unusable_pairs_name_their_cause(sync_cs):
+    case, run_a, run_b = sync_cs
+    la, lb = case.run_a.labels, case.run_b.labels
+    # The same run twice: every pair of rays coincides, nothing can be triangulated.
+    with pytest.raises(vc.PhaseError, match="cannot be triangulated"):
+        match_phase(run_a, run_a, la, la)
+    # The balloon in only two frames of run A: no diagonal of five pairs for the image-only window.
+    few = la.copy()
+    few[2:][few[2:] == LABELS["balloon"]] = LABELS["background"]
+    with pytest.raises(vc.PhaseError, match="window"):
+        match_phase(run_a, run_b, few, lb, objects="balloon", use_ecg=False, min_contrast=0.0,
+                    prefer_fill=1.1)
+    m = match_phase(run_a, run_b, few, lb, objects="balloon", use_ecg=False, window=0, min_contrast=0.0,
+                    prefer_fill=1.1)
+    assert m.frame_a in (0, 1)
+
+
 def test_match_phase_rejects_bad_ecg_arguments(sync_cs):
     case, run_a, run_b = sync_cs
     with pytest.raises(vc.VesselcadError, match="ecg_tolerance"):
         match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, ecg_tolerance=0.0)
     with pytest.raises(vc.VesselcadError, match="ecg_weight"):
         match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, ecg_weight=-1.0)
+    with pytest.raises(vc.VesselcadError, match="steady_tolerance"):
+        ecg_phase(run_a, steady_tolerance=-1.0)
+    with pytest.raises(vc.VesselcadError, match="run"):
+        ecg_phase("a.dcm")
 
 
 def test_unsynchronized_matching_beats_frame_zero_and_plots(tmp_path):

@@ -365,6 +365,10 @@ def ecg_phase(run: XARun, *, steady_tolerance: float = 0.75) -> np.ndarray | Non
     numpy.ndarray or None
         Shape (N,), or None when the run has fewer than two R-waves.
     """
+    if not isinstance(run, XARun):
+        raise ArgumentError(f"run: expected an XARun, got {type(run).__name__}")
+    if not steady_tolerance >= 0.0:
+        raise ArgumentError(f"steady_tolerance: expected frame intervals >= 0, got {steady_tolerance}")
     if run.r_wave_frames is None or len(run.r_wave_frames) < 2:
         return None
     t = run.frame_times_ms
@@ -569,11 +573,19 @@ def match_phase(
     score = diagonal_mean(matrix, window)
     if ecg_diff is not None:
         score = score + ecg_weight * ecg_diff
+    before_window = bool(allowed.any())
     allowed &= np.isfinite(score)
     if not allowed.any():
-        if not (elig_a[:, None] & elig_b[None, :]).any() or not np.isfinite(matrix).any():
+        if not np.isfinite(matrix).any():
+            raise PhaseError(f"run_a/run_b: key points found in both runs ({', '.join(used)}) cannot be "
+                             "triangulated: the two views' rays do not cross (one viewing direction "
+                             "for both runs?); pass pair= or check the runs' geometry")
+        if not (elig_a[:, None] & elig_b[None, :] & np.isfinite(matrix)).any():
             raise PhaseError("labels_a/labels_b: no frame pair has key points in both runs among the "
                              "eligible frames; lower min_contrast or pass pair=")
+        if before_window:
+            raise PhaseError(f"window: no diagonal of {window + 1} eligible pairs with key points "
+                             "(too few frames with key points); pass window=0 or pair=")
         raise PhaseError("no eligible frame pair: check min_contrast and the ECG restriction")
     n_a, n_b = matrix.shape
     masked = np.where(allowed, score, np.inf)
