@@ -109,10 +109,10 @@ def main() -> int:
     segmenter = vc.Segmenter() if "model" in sources else None
     methods = {}
     for source in sources:
-        for k, (method, options) in enumerate(METHODS.items()):
+        for n, (method, options) in enumerate(METHODS.items()):
             if source == "truth":
                 methods[method] = ("truth", options)
-            elif k < 2:
+            elif n < 2:
                 methods[f"model labels, {method}"] = ("model", options)
     rows = []
     rng = np.random.default_rng(0)

@@ -573,7 +573,6 @@ def match_phase(
     score = diagonal_mean(matrix, window)
     if ecg_diff is not None:
         score = score + ecg_weight * ecg_diff
-    before_window = bool(allowed.any())
     allowed &= np.isfinite(score)
     if not allowed.any():
         if not np.isfinite(matrix).any():
@@ -583,10 +582,9 @@ def match_phase(
         if not (elig_a[:, None] & elig_b[None, :] & np.isfinite(matrix)).any():
             raise PhaseError("labels_a/labels_b: no frame pair has key points in both runs among the "
                              "eligible frames; lower min_contrast or pass pair=")
-        if before_window:
-            raise PhaseError(f"window: no diagonal of {window + 1} eligible pairs with key points "
-                             "(too few frames with key points); pass window=0 or pair=")
-        raise PhaseError("no eligible frame pair: check min_contrast and the ECG restriction")
+        # The fill and ECG rules never empty the choice, so only the diagonal window is left.
+        raise PhaseError(f"window: no diagonal of {window + 1} eligible pairs with key points "
+                         "(too few frames with key points); pass window=0 or pair=")
     n_a, n_b = matrix.shape
     masked = np.where(allowed, score, np.inf)
     if pair is not None:
