@@ -96,11 +96,11 @@ class Tube:
             best_d = np.where(better, d, best_d)
             best_r = np.where(better, r, best_r)
         side = best_d - best_r
-        # The end planes bound the tube only next to its ends (a curved tube can
-        # come back behind its own start plane further along).
-        end_zone = int(np.ceil(2.0 * self.reach / 0.02))
-        start = np.where(j <= end_zone, -np.einsum("ij,j->i", q - self.c[0], self.t[0]), -np.inf)
-        end = np.where(j >= n - 1 - end_zone, np.einsum("ij,j->i", q - self.c[-1], self.t[-1]), -np.inf)
+        # An end plane bounds the tube only where the nearest axis point is that end:
+        # a tube that turns by more than 90 degrees comes back behind its own start
+        # plane a few millimetres along (the lead-ins of daughters at a parent's end).
+        start = np.where(j <= 1, -np.einsum("ij,j->i", q - self.c[0], self.t[0]), -np.inf)
+        end = np.where(j >= n - 2, np.einsum("ij,j->i", q - self.c[-1], self.t[-1]), -np.inf)
         out[near] = np.maximum(side, np.maximum(start, end))
         return out
 

@@ -259,3 +259,31 @@ def test_vessel_passing_over_itself_is_one_solid_without_double_counting():
     mesh = solid.to_trimesh()
     assert mesh.is_watertight
     assert {t.role for _f, t in solid.faces} == {"wall", "inlet", "outlet"}
+
+
+def test_tube_wall_follows_a_tight_bend_and_a_quick_radius_change():
+    # A quarter-turn-plus arc of curvature radius 4 mm whose radius grows from 1.0 to
+    # 1.8 mm within 2 mm: every wall point must lie on the circle of the exact tube in
+    # the plane normal to the arc through it, i.e. at the angle atan2(y, x) around the
+    # arc's centre, at distance r(s) from the arc (s = 4 * angle).
+    from scipy import interpolate
+
+    from vesselcad.kernel.pipes import SECTION_TOL_MM, tube_surface
+
+    bend = 4.0
+    length = bend * 2.0 * np.pi / 3.0
+    s = np.linspace(0.0, length, 400)
+    arc = np.c_[bend * np.cos(s / bend), bend * np.sin(s / bend), 0 * s]
+    spine = interpolate.make_interp_spline(s, arc, k=3)
+
+    def radius(v):
+        x = np.clip((np.asarray(v, float) - 3.0) / 2.0, 0.0, 1.0)
+        return 1.0 + 0.8 * x * x * (3.0 - 2.0 * x)
+
+    surface = tube_surface(spine, radius)
+    pts = np.array([surface.Value(u, v).Coord() for u in np.linspace(0.0, 4.0, 33)
+                    for v in np.linspace(0.0, length, 600)])
+    at = bend * np.unwrap(np.arctan2(pts[:, 1], pts[:, 0]))
+    axis = np.c_[bend * np.cos(at / bend), bend * np.sin(at / bend), 0 * at]
+    deviation = np.abs(np.linalg.norm(pts - axis, axis=1) - radius(at))
+    assert deviation.max() < 2.0 * SECTION_TOL_MM

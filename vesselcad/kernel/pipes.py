@@ -6,10 +6,12 @@ The wall of a branch is a rational B-spline surface of degree (2, 3):
   exact circle, the classic 9-pole rational quadratic with weights 1 and
   sqrt(2)/2, in the plane normal to the spine;
 - along the vessel (V = arc length of the spine, mm) each of the nine pole
-  tracks is the cubic interpolant of its station values, so between stations
-  the section stays circular to within the interpolation error (well under a
-  micrometre at the default station spacing; ``benchmarks/solids.py`` measures
-  the distance to the analytic tube).
+  tracks is the cubic interpolant of its station values. Stations are at most
+  ``station_step_mm`` apart, closer where the vessel bends tightly or its
+  radius changes quickly: one is added wherever the wall midway between two
+  stations would stray more than ``SECTION_TOL_MM`` (2 micrometres) from the
+  exact section there (``benchmarks/solids.py`` measures the distance to the
+  analytic tube).
 
 The section frames are rotation minimizing (double reflection, Wang et al.
 2008), so the wall does not twist and the seam stays straight. The solid is
@@ -22,6 +24,8 @@ sections are no longer exact circles.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from OCP.BRep import BRep_Builder, BRep_Tool
@@ -42,10 +46,17 @@ from .nurbs import _int_array, _real_array, is_valid, knots_and_mults
 from .solid import FUZZY_MM, BranchPipe, _general_fuse, _History, _inside, _quick_volume, _subshapes
 
 __all__ = ["rotation_minimizing_normals", "tube_stations", "tube_surface", "tube_solid", "branch_pipe",
-           "TUBE_TOL_MM"]
+           "TUBE_TOL_MM", "SECTION_TOL_MM"]
 
 #: Tolerance given to the faces and edges of a tube (mm).
 TUBE_TOL_MM = 1e-6
+#: Largest distance between a tube's wall and its exact circular section midway
+#: between two stations (mm); stations are added where it would be larger.
+SECTION_TOL_MM = 2e-3
+
+_FRAME_STEP_MM = 0.25  # spacing of the rotation-minimizing frame samples
+_MAX_REFINE = 8  # rounds of station insertion
+_MIN_STATION_GAP_MM = 0.05  # stations are never added closer than this
 
 _ANGLES = np.radians(np.arange(0, 361, 45, dtype=float))
 _POLE_RADIUS = np.array([1.0, np.sqrt(2.0)] * 4 + [1.0])
@@ -94,10 +105,46 @@ def rotation_minimizing_normals(points: np.ndarray, tangents: np.ndarray) -> np.
     return normals
 
 
-def tube_stations(spine: interpolate.BSpline, radius: interpolate.BSpline | np.ndarray,
-                  station_step_mm: float = 2.0, v_range: tuple[float, float] | None = None
+def _frames(spine: interpolate.BSpline, v0: float, v1: float, step: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation-minimizing normals on a uniform grid of ``v0..v1`` (spacing <= ``step``)."""
+    n = max(int(np.ceil((v1 - v0) / step)), 3) + 1
+    grid = np.linspace(v0, v1, n)
+    d1 = spine.derivative()(grid)
+    speed = np.linalg.norm(d1, axis=1)
+    if np.any(speed < 1e-9):
+        raise GeometryError("tube: the spine has a zero tangent (a cusp or repeated points)")
+    return grid, rotation_minimizing_normals(spine(grid), d1 / speed[:, None])
+
+
+def _section_poles(spine: interpolate.BSpline, radius: Any, v: np.ndarray, grid: np.ndarray,
+                   grid_normals: np.ndarray) -> np.ndarray:
+    """The (len(v), 9, 3) poles of the exact circles normal to the spine at ``v``."""
+    d1 = spine.derivative()(v)
+    tan = d1 / np.linalg.norm(d1, axis=1)[:, None]
+    # the frame between grid samples: linear blend, made normal to the exact tangent
+    nrm = np.stack([np.interp(v, grid, grid_normals[:, k]) for k in range(3)], axis=1)
+    nrm -= np.einsum("ij,ij->i", nrm, tan)[:, None] * tan
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    bin_ = np.cross(tan, nrm)
+    r = np.asarray(radius(v), dtype=float).reshape(-1)
+    if np.any(~np.isfinite(r)) or np.any(r <= 0):
+        raise GeometryError("tube: the radius law must be positive and finite")
+    dirs = (np.cos(_ANGLES)[None, :, None] * nrm[:, None, :]
+            + np.sin(_ANGLES)[None, :, None] * bin_[:, None, :])
+    return spine(v)[:, None, :] + (r[:, None] * _POLE_RADIUS[None, :])[:, :, None] * dirs
+
+
+def tube_stations(spine: interpolate.BSpline, radius: Any, station_step_mm: float = 2.0,
+                  v_range: tuple[float, float] | None = None, tol_mm: float = SECTION_TOL_MM
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Station parameters and the (m, 9, 3) circle poles of a tube.
+
+    Stations start evenly spaced (at most ``station_step_mm`` apart); where the
+    cubic interpolation of the poles between two stations strays more than
+    ``tol_mm`` from the exact section halfway between them (a tight bend, a
+    quickly changing radius) a station is added there, until none does. As the
+    weights are the same along V, a pole deviation bounds the wall's.
 
     Parameters
     ----------
@@ -109,6 +156,8 @@ def tube_stations(spine: interpolate.BSpline, radius: interpolate.BSpline | np.n
         Largest spacing of the exact circular sections.
     v_range : (float, float), optional
         Part of the spine to sweep; default its whole domain.
+    tol_mm : float
+        Largest distance between the wall and the exact section midway between stations.
     """
     k = spine.k
     v0, v1 = v_range if v_range is not None else (float(spine.t[k]), float(spine.t[-k - 1]))
@@ -117,23 +166,20 @@ def tube_stations(spine: interpolate.BSpline, radius: interpolate.BSpline | np.n
         raise GeometryError(f"tube: empty spine range ({v0}, {v1})")
     n_st = max(int(np.ceil(length / station_step_mm)) + 1, 4)
     v = np.linspace(v0, v1, n_st)
-    # The frame is propagated on a denser sampling so the reflections stay accurate.
-    dense = np.linspace(v0, v1, 4 * (n_st - 1) + 1)
-    d1 = spine.derivative()(dense)
-    speed = np.linalg.norm(d1, axis=1)
-    if np.any(speed < 1e-9):
-        raise GeometryError("tube: the spine has a zero tangent (a cusp or repeated points)")
-    tan = d1 / speed[:, None]
-    nrm = rotation_minimizing_normals(spine(dense), tan)[::4]
-    tan = tan[::4]
-    bin_ = np.cross(tan, nrm)
-    r = np.asarray(radius(v), dtype=float).reshape(-1)
-    if np.any(~np.isfinite(r)) or np.any(r <= 0):
-        raise GeometryError("tube: the radius law must be positive and finite")
-    centre = spine(v)
-    dirs = (np.cos(_ANGLES)[None, :, None] * nrm[:, None, :]
-            + np.sin(_ANGLES)[None, :, None] * bin_[:, None, :])
-    poles = centre[:, None, :] + (r[:, None] * _POLE_RADIUS[None, :])[:, :, None] * dirs
+    # the frame is propagated on a dense grid so the reflections stay accurate
+    grid, grid_normals = _frames(spine, v0, v1, min(station_step_mm / 4.0, _FRAME_STEP_MM))
+    poles = _section_poles(spine, radius, v, grid, grid_normals)
+    for _ in range(_MAX_REFINE):
+        mid = 0.5 * (v[1:] + v[:-1])
+        track = interpolate.make_interp_spline(v, poles.reshape(len(v), -1), k=3)
+        exact = _section_poles(spine, radius, mid, grid, grid_normals)
+        dev = np.linalg.norm(track(mid).reshape(-1, 9, 3) - exact, axis=2).max(axis=1)
+        bad = (dev > tol_mm) & (np.diff(v) > 2.0 * _MIN_STATION_GAP_MM)
+        if not bad.any():
+            break
+        order = np.argsort(np.r_[v, mid[bad]])
+        v = np.r_[v, mid[bad]][order]
+        poles = np.concatenate([poles, exact[bad]])[order]
     return v, poles
 
 
