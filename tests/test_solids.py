@@ -287,3 +287,16 @@ def test_tube_wall_follows_a_tight_bend_and_a_quick_radius_change():
     axis = np.c_[bend * np.cos(at / bend), bend * np.sin(at / bend), 0 * at]
     deviation = np.abs(np.linalg.norm(pts - axis, axis=1) - radius(at))
     assert deviation.max() < 2.0 * SECTION_TOL_MM
+
+
+def test_exact_distance_to_the_solid(y_solid):
+    # Points on the axis of the main pipe, away from the junction, lie one radius
+    # (2 mm) from its wall; a point 3 mm beyond the end of the left child lies 3 mm
+    # from its end face; points outside the main pipe: radial distance - 2.
+    on_axis = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 35.0]])
+    beyond = (np.array([0.0, 0.0, 20.0]) + 28.0 * LEFT)[None]
+    outside = np.array([[5.0, 0.0, 8.0], [0.0, -3.5, 33.0]])
+    d = y_solid.distance(np.vstack([on_axis, beyond, outside]))
+    np.testing.assert_allclose(d, [2.0, 2.0, 3.0, 3.0, 1.5], atol=1e-4)  # rebuilt spines: ~5 um
+    with pytest.raises(vc.VesselcadError, match="distance"):
+        y_solid.distance(np.zeros((2, 2)))

@@ -346,6 +346,39 @@ class VesselSolid:
                         "area": float(g.Mass()), "centroid": np.array([c.X(), c.Y(), c.Z()])})
         return out
 
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Exact distances (mm) from points to the solid's boundary (its B-rep faces).
+
+        Unlike a distance to a tessellation, this is free of chord error
+        (``BRepExtrema_DistShapeShape`` against the outer shell); about 0.1 s
+        per point on a tree, so meant for checks on a few points.
+
+        Parameters
+        ----------
+        points : (n, 3) array_like
+            Points in mm, inside or outside the solid.
+
+        Returns
+        -------
+        (n,) ndarray
+        """
+        from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
+        from OCP.BRepClass3d import BRepClass3d
+        from OCP.BRepExtrema import BRepExtrema_DistShapeShape
+
+        pts = np.asarray(points, dtype=float)
+        if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+            raise ArgumentError(f"distance: expected finite (n, 3) points, got shape {pts.shape}")
+        shell = BRepClass3d.OuterShell_s(self.shape)
+        out = np.empty(len(pts))
+        for k, q in enumerate(pts):
+            vertex = BRepBuilderAPI_MakeVertex(gp_Pnt(*map(float, q))).Vertex()
+            dist = BRepExtrema_DistShapeShape(vertex, shell)
+            if not dist.IsDone():
+                raise GeometryError(f"distance: OCCT could not measure the distance of point {k}")
+            out[k] = dist.Value()
+        return out
+
     def check(self, self_interference: bool = False) -> dict[str, Any]:
         """Validity report of the solid.
 
