@@ -268,7 +268,7 @@ def test_tube_wall_follows_a_tight_bend_and_a_quick_radius_change():
     # arc's centre, at distance r(s) from the arc (s = 4 * angle).
     from scipy import interpolate
 
-    from vesselcad.kernel.pipes import SECTION_TOL_MM, tube_surface
+    from vesselcad.kernel.pipes import SECTION_TOL_MM, tube_stations, tube_surface
 
     bend = 4.0
     length = bend * 2.0 * np.pi / 3.0
@@ -280,6 +280,8 @@ def test_tube_wall_follows_a_tight_bend_and_a_quick_radius_change():
         x = np.clip((np.asarray(v, float) - 3.0) / 2.0, 0.0, 1.0)
         return 1.0 + 0.8 * x * x * (3.0 - 2.0 * x)
 
+    with pytest.raises(vc.VesselcadError, match="tol_mm"):
+        tube_stations(spine, radius, tol_mm=0.0)
     surface = tube_surface(spine, radius)
     pts = np.array([surface.Value(u, v).Coord() for u in np.linspace(0.0, 4.0, 33)
                     for v in np.linspace(0.0, length, 600)])

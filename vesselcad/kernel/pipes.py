@@ -159,6 +159,9 @@ def tube_stations(spine: interpolate.BSpline, radius: Any, station_step_mm: floa
     tol_mm : float
         Largest distance between the wall and the exact section midway between stations.
     """
+    for name, value in (("station_step_mm", station_step_mm), ("tol_mm", tol_mm)):
+        if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
+            raise GeometryError(f"tube: {name} must be a positive number, got {value!r}")
     k = spine.k
     v0, v1 = v_range if v_range is not None else (float(spine.t[k]), float(spine.t[-k - 1]))
     length = v1 - v0
