@@ -288,3 +288,25 @@ def test_cli_mesh(y_tree, tmp_path, capsys):
     doc = json.loads((tmp_path / "mesh" / "y.bc.json").read_text())
     assert doc["outlets"][0]["extension_mm"] == pytest.approx(2 * 1.4, rel=1e-3)
     assert main(["mesh", str(tmp_path / "none"), "--out", str(out)]) == 2
+
+
+def test_inverted_sites_name_where_and_which_branches(y_volume):
+    from dataclasses import replace
+
+    assert vc.cfd.inverted_sites(y_volume) == []
+    # Invert (swap two nodes of) the tetrahedron nearest a point inside the main vessel's wall
+    # far from the junction, and the one nearest a point inside the right child's wall.
+    tets = y_volume.cells["tetra"].copy()
+    centroids = y_volume.points[tets].mean(axis=1)
+    targets = {0: np.array([1.8, 0.0, 5.0]), 2: JOIN + 18.0 * RIGHT + np.array([0.0, 1.25, 0.0])}
+    picked = {b: int(np.argmin(np.linalg.norm(centroids - q, axis=1))) for b, q in targets.items()}
+    for k in picked.values():
+        tets[k, [0, 1]] = tets[k, [1, 0]]
+    sites = vc.cfd.inverted_sites(replace(y_volume, cells={"tetra": tets}))
+    assert len(sites) == 2
+    for centre, count, branches in sites:
+        b = min(picked, key=lambda b: np.linalg.norm(centroids[picked[b]] - centre))
+        np.testing.assert_allclose(centre, centroids[picked[b]], atol=1e-9)
+        assert count == 1 and branches == [b]
+    with pytest.raises(vc.VesselcadError, match="radius_mm"):
+        vc.cfd.inverted_sites(y_volume, radius_mm=0)

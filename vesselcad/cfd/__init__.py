@@ -10,9 +10,20 @@ names): ``fluid`` (0; physical volume 1 in .msh), ``wall`` (1), ``inlet``
 (2), ``outlet_1``, ``outlet_2``, ... (3, 4, ...). See docs/cfd.md.
 """
 
-from .mesher import FLUID_ID, INLET_ID, WALL_ID, Boundary, CFDMesh, load_solid, surface_mesh, volume_mesh
+from .mesher import (
+    FLUID_ID,
+    INLET_ID,
+    WALL_ID,
+    Boundary,
+    CFDMesh,
+    inverted_sites,
+    load_solid,
+    surface_mesh,
+    volume_mesh,
+)
 from .quality import aspect_ratio, quality_report, scaled_jacobian
 from .sizing import RadiusField
 
-__all__ = ["surface_mesh", "volume_mesh", "load_solid", "CFDMesh", "Boundary", "RadiusField",
-           "scaled_jacobian", "aspect_ratio", "quality_report", "FLUID_ID", "WALL_ID", "INLET_ID"]
+__all__ = ["surface_mesh", "volume_mesh", "load_solid", "inverted_sites", "CFDMesh", "Boundary",
+           "RadiusField", "scaled_jacobian", "aspect_ratio", "quality_report", "FLUID_ID", "WALL_ID",
+           "INLET_ID"]

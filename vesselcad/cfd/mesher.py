@@ -27,7 +27,7 @@ from ..errors import ArgumentError, InputFileError, MeshError, VesselcadWarning
 from .quality import NODES_PER_CELL, quality_report
 from .sizing import RadiusField
 
-__all__ = ["Boundary", "CFDMesh", "surface_mesh", "volume_mesh", "load_solid",
+__all__ = ["Boundary", "CFDMesh", "surface_mesh", "volume_mesh", "load_solid", "inverted_sites",
            "WALL_ID", "INLET_ID", "FLUID_ID"]
 
 #: CellEntityIds / physical tags (vmtk's convention): the fluid volume 0 in VTK
@@ -628,10 +628,61 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
                                  "(the vessel end touches another vessel)")
     inverted = sum(q.get("inverted", 0) for q in mesh.quality.values())
     if inverted:
-        msg = f"the volume mesh has {inverted} inverted elements"
+        names = {p.branch_id: p.name for p in solid.pipes}
+        sites = "; ".join(
+            f"{n} at ({', '.join(f'{v:.1f}' for v in centre)}) mm next to branch"
+            f"{'es' if len(branches) > 1 else ''} "
+            + ", ".join(f"{b} ({names.get(b, '?')})" for b in branches)
+            for centre, n, branches in inverted_sites(mesh))
+        msg = f"the volume mesh has {inverted} inverted elements: {sites}"
         mesh.warnings.append(msg)
         warnings.warn(msg, VesselcadWarning, stacklevel=3)
     return mesh
+
+
+def inverted_sites(mesh: CFDMesh, radius_mm: float = 1.0) -> list[tuple[np.ndarray, int, list[int]]]:
+    """Where a volume mesh has inverted elements (scaled Jacobian <= 0), and which branches' walls are there.
+
+    Parameters
+    ----------
+    mesh : CFDMesh
+        A volume mesh.
+    radius_mm : float
+        Inverted elements closer than this are one site; wall facets closer
+        than this to a site name its branches.
+
+    Returns
+    -------
+    list of (centre, count, branch ids)
+        One entry per site, most elements first; ``centre`` (mm) is the mean of
+        the elements' centroids.
+    """
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from .quality import scaled_jacobian
+
+    if not (isinstance(radius_mm, int | float) and radius_mm > 0):
+        raise ArgumentError(f"radius_mm: expected a positive number, got {radius_mm!r}")
+    centres = [mesh.points[c[scaled_jacobian(mesh.points, c, kind) <= 0]].mean(axis=1)
+               for kind, c in mesh.cells.items() if len(c)]
+    pts = np.vstack(centres) if centres else np.empty((0, 3))
+    if not len(pts):
+        return []
+    _n, label = connected_components(cKDTree(pts).sparse_distance_matrix(cKDTree(pts), radius_mm),
+                                     directed=False)
+    walls = [(mesh.points[f[mesh.facet_ids[k] == mesh.groups["wall"]]].mean(axis=1),
+              mesh.facet_branch[k][mesh.facet_ids[k] == mesh.groups["wall"]]) for k, f in mesh.facets.items()]
+    wall_xyz = np.vstack([w[0] for w in walls])
+    wall_branch = np.concatenate([w[1] for w in walls])
+    near = cKDTree(wall_xyz)
+    out = []
+    for k in np.unique(label):
+        centre = pts[label == k].mean(axis=0)
+        hits = near.query_ball_point(centre, radius_mm)
+        out.append((centre, int(np.sum(label == k)), sorted({int(b) for b in wall_branch[hits]})))
+    out.sort(key=lambda site: -site[1])
+    return out
 
 
 def _check_args(edge_factor: float, min_size: float | None, max_size: float | None, cap_segments: int,
