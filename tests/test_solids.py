@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -302,3 +304,26 @@ def test_exact_distance_to_the_solid(y_solid):
     np.testing.assert_allclose(d, [2.0, 2.0, 3.0, 3.0, 1.5], atol=1e-4)  # rebuilt spines: ~5 um
     with pytest.raises(vc.VesselcadError, match="distance"):
         y_solid.distance(np.zeros((2, 2)))
+
+
+def test_vessels_touching_away_from_a_junction_are_reported(y_solid):
+    # Two daughters of a straight root (r = 2 along z): one leaves at z = 5 towards +x+z,
+    # the other at z = 25 towards +x-z; their axes cross at (10, 0, 15), 14.1 mm along
+    # each, far from both junctions. Only that contact is reported, naming both.
+    up, down = np.array([1.0, 0.0, 1.0]), np.array([1.0, 0.0, -1.0])
+    tree = _tree([
+        {"id": 0, "parent": None, "name": "root", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+         "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "name": "up", "points": _line([0, 0, 5], up, 25).tolist(),
+         "radius": [1.0] * 30},
+        {"id": 2, "parent": 0, "name": "down", "points": _line([0, 0, 25], down, 25).tolist(),
+         "radius": [1.0] * 30},
+    ])
+    solid = tree.solid()
+    touch = [w for w in solid.warnings if "touch away from a junction" in w]
+    assert len(touch) == 1
+    assert "branches 1 (up) and 2 (down)" in touch[0]
+    where = re.search(r"around \(([-\d.]+), ([-\d.]+), ([-\d.]+)\) mm", touch[0]).groups()
+    np.testing.assert_allclose(np.array(where, float), [10.0, 0.0, 15.0], atol=0.3)
+    assert solid.check()["watertight"]
+    assert not [w for w in y_solid.warnings if "touch away" in w]

@@ -655,7 +655,7 @@ class VesselTree:
         t2 = time.perf_counter()
         out = fuse_pipes(pipes)
         out.failed = {**failed, **out.failed}
-        out.warnings = warnings + out.warnings
+        out.warnings = warnings + _contacts(specs) + out.warnings
         out.timings_s = {"rebuild": t1 - t0, "pipes": t2 - t1, **out.timings_s}
         out.specs = specs
         return out
@@ -775,6 +775,63 @@ def _start_inside(b: TreeBranch, par: TreeBranch
     spl, _ = fit_spine(new_pts, TOL_MM)
     law = fit_radius_law(_project_params(spl, new_pts), rad, float(spl.t[-4] - spl.t[3]))
     return spl, law, [note], r_par
+
+
+def _contacts(specs: list[dict[str, Any]], step: float = 0.25) -> list[str]:
+    """Warnings for vessels whose walls meet away from their junctions.
+
+    Two pipes touch where their axes come closer than the sum of their radii.
+    Where that begins at the start of one of them (a child starting inside its
+    parent, two daughters leaving one point) and runs on without a break, it is
+    their junction and not reported; any other contact gives the union a sharp
+    crease (or a handle), which CFD boundary layers cannot follow. One warning
+    per pair of vessels, at their deepest overlap.
+    """
+    from scipy.spatial import cKDTree
+
+    if len(specs) < 2:
+        return []
+    pts, rad, owner, index = [], [], [], []
+    for k, sp in enumerate(specs):
+        spine, law = sp["spine"], sp["radius"]
+        a, b = float(spine.t[spine.k]), float(spine.t[-spine.k - 1])
+        u = np.linspace(a, b, max(int((b - a) / step), 1) + 1)
+        pts.append(spine(u))
+        rad.append(np.ravel(law(u)))
+        owner.append(np.full(len(u), k))
+        index.append(np.arange(len(u)))
+    p, r, o, n = np.vstack(pts), np.concatenate(rad), np.concatenate(owner), np.concatenate(index)
+    pairs = cKDTree(p).query_pairs(2.0 * float(r.max()), output_type="ndarray")
+    if not len(pairs):
+        return []
+    i, j = pairs[:, 0], pairs[:, 1]
+    swap = o[i] > o[j]
+    i, j = np.where(swap, j, i), np.where(swap, i, j)
+    gap = np.linalg.norm(p[i] - p[j], axis=1) - r[i] - r[j]
+    touch = (o[i] != o[j]) & (gap < 0)
+    i, j, gap = i[touch], j[touch], gap[touch]
+
+    def junction_run(idx: np.ndarray) -> int:
+        """Length of the unbroken run of contact samples from a vessel's start (0 if none)."""
+        have = np.zeros(int(idx.max()) + 2, bool)
+        have[idx] = True
+        return int(np.argmin(have)) if have[0] else 0
+
+    out = []
+    for a, b in sorted({(int(x), int(y)) for x, y in zip(o[i], o[j], strict=True)}):
+        sel = (o[i] == a) & (o[j] == b)
+        na, nb = n[i[sel]], n[j[sel]]
+        away = (na >= junction_run(na)) & (nb >= junction_run(nb))
+        if not away.any():
+            continue
+        k = np.flatnonzero(sel)[away][np.argmin(gap[sel][away])]
+        x, y, z = 0.5 * (p[i[k]] + p[j[k]])
+        first, second = specs[a], specs[b]
+        out.append(f"branches {first['id']} ({first['name']}) and {second['id']} ({second['name']}) touch "
+                   f"away from a junction, around ({x:.1f}, {y:.1f}, {z:.1f}) mm (walls overlap by up to "
+                   f"{-gap[k]:.2f} mm): the solid joins them there (a handle, with a sharp crease that CFD "
+                   "boundary layers may not follow)")
+    return out
 
 
 def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> tuple[list[str], list[float]]:
