@@ -828,9 +828,9 @@ def _contacts(specs: list[dict[str, Any]], step: float = 0.25) -> list[str]:
         x, y, z = 0.5 * (p[i[k]] + p[j[k]])
         first, second = specs[a], specs[b]
         out.append(f"branches {first['id']} ({first['name']}) and {second['id']} ({second['name']}) touch "
-                   f"away from a junction, around ({x:.1f}, {y:.1f}, {z:.1f}) mm (walls overlap by up to "
-                   f"{-gap[k]:.2f} mm): the solid joins them there (a handle, with a sharp crease that CFD "
-                   "boundary layers may not follow)")
+                   f"away from a junction, around ({x:.1f}, {y:.1f}, {z:.1f}) mm (the walls cut up to "
+                   f"{-gap[k]:.2f} mm into each other): the solid joins them there (a handle, with a sharp "
+                   "crease that CFD boundary layers may not follow)")
     return out
 
 
