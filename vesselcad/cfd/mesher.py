@@ -629,12 +629,12 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
     inverted = sum(q.get("inverted", 0) for q in mesh.quality.values())
     if inverted:
         names = {p.branch_id: p.name for p in solid.pipes}
-        sites = "; ".join(
-            f"{n} at ({', '.join(f'{v:.1f}' for v in centre)}) mm next to branch"
-            f"{'es' if len(branches) > 1 else ''} "
-            + ", ".join(f"{b} ({names.get(b, '?')})" for b in branches)
-            for centre, n, branches in inverted_sites(mesh))
-        msg = f"the volume mesh has {inverted} inverted elements: {sites}"
+        sites = []
+        for (x, y, z), n, branches in inverted_sites(mesh):
+            next_to = ", ".join(f"{b} ({names.get(b, '?')})" for b in branches)
+            plural = "es" if len(branches) > 1 else ""
+            sites.append(f"{n} at ({x:.1f}, {y:.1f}, {z:.1f}) mm next to branch{plural} {next_to}")
+        msg = f"the volume mesh has {inverted} inverted elements: {'; '.join(sites)}"
         mesh.warnings.append(msg)
         warnings.warn(msg, VesselcadWarning, stacklevel=3)
     return mesh
@@ -662,6 +662,8 @@ def inverted_sites(mesh: CFDMesh, radius_mm: float = 1.0) -> list[tuple[np.ndarr
 
     from .quality import scaled_jacobian
 
+    if not isinstance(mesh, CFDMesh):
+        raise ArgumentError(f"inverted_sites: expected a CFDMesh, got {type(mesh).__name__}")
     if not (isinstance(radius_mm, int | float) and radius_mm > 0):
         raise ArgumentError(f"radius_mm: expected a positive number, got {radius_mm!r}")
     centres = [mesh.points[c[scaled_jacobian(mesh.points, c, kind) <= 0]].mean(axis=1)
