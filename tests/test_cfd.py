@@ -310,3 +310,5 @@ def test_inverted_sites_name_where_and_which_branches(y_volume):
         assert count == 1 and branches == [b]
     with pytest.raises(vc.VesselcadError, match="radius_mm"):
         vc.cfd.inverted_sites(y_volume, radius_mm=0)
+    with pytest.raises(vc.VesselcadError, match="CFDMesh"):
+        vc.cfd.inverted_sites("mesh.msh")

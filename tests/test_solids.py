@@ -304,6 +304,8 @@ def test_exact_distance_to_the_solid(y_solid):
     np.testing.assert_allclose(d, [2.0, 2.0, 3.0, 3.0, 1.5], atol=1e-4)  # rebuilt spines: ~5 um
     with pytest.raises(vc.VesselcadError, match="distance"):
         y_solid.distance(np.zeros((2, 2)))
+    with pytest.raises(vc.VesselcadError, match="distance"):
+        y_solid.distance("not points")
 
 
 def test_vessels_touching_away_from_a_junction_are_reported(y_solid):

@@ -366,7 +366,11 @@ class VesselSolid:
         from OCP.BRepClass3d import BRepClass3d
         from OCP.BRepExtrema import BRepExtrema_DistShapeShape
 
-        pts = np.asarray(points, dtype=float)
+        try:
+            pts = np.asarray(points, dtype=float)
+        except (TypeError, ValueError):
+            kind = type(points).__name__
+            raise ArgumentError(f"distance: expected finite (n, 3) points, got {kind}") from None
         if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
             raise ArgumentError(f"distance: expected finite (n, 3) points, got shape {pts.shape}")
         shell = BRepClass3d.OuterShell_s(self.shape)
