@@ -312,3 +312,63 @@ def test_inverted_sites_name_where_and_which_branches(y_volume):
         vc.cfd.inverted_sites(y_volume, radius_mm=0)
     with pytest.raises(vc.VesselcadError, match="CFDMesh"):
         vc.cfd.inverted_sites("mesh.msh")
+    with pytest.raises(vc.VesselcadError, match="threshold"):
+        vc.cfd.inverted_sites(y_volume, threshold=2.0)
+    # threshold 1: every element counts, and the Y's elements form one connected site
+    (_c, count, _branches), = vc.cfd.inverted_sites(y_volume, radius_mm=1.0, threshold=1.0)
+    assert count == len(y_volume.cells["tetra"])
+
+
+def test_edges_passing_close_without_meeting_refine_the_size():
+    # Two straight B-rep edges, one along x through the origin, one along z through
+    # (5, 0.02, 0): they pass 0.02 mm apart at x = 5, 5 mm from any vertex. The sizes
+    # asked there are that gap (to the sampling's 0.04 mm); edges meeting at a vertex
+    # at 90 degrees ask nothing.
+    import gmsh
+
+    from vesselcad.cfd.mesher import _short_curves
+
+    field = RadiusField(np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]), np.array([2.0, 2.0]))
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        occ = gmsh.model.occ
+        occ.addLine(occ.addPoint(0, 0, 0), occ.addPoint(10, 0, 0))
+        occ.addLine(occ.addPoint(5, 0.02, -5), occ.addPoint(5, 0.02, 5))
+        occ.addLine(occ.addPoint(0, 20, 0), occ.addPoint(10, 20, 0))  # two edges meeting
+        occ.addLine(occ.addPoint(10, 20, 0), occ.addPoint(10, 30, 0))  # at a right angle
+        occ.synchronize()
+        pts, size = _short_curves(gmsh, field, edge_factor=0.3, min_size=0.1)
+    finally:
+        gmsh.finalize()
+    assert len(pts) > 0
+    # within half the element size (0.3 mm) of the closest approach, none at the corner
+    assert np.all(np.linalg.norm(pts - [5.0, 0.01, 0.0], axis=1) <= 0.3 + 0.03)
+    assert size.min() == pytest.approx(0.02, abs=1e-6)
+    # each point asks for the distance between the two edges' samples there (>= its own
+    # distance to the other edge, < 0.3 mm)
+    to_other = np.where(pts[:, 1] > 0.01, np.hypot(pts[:, 1], pts[:, 2]), np.hypot(pts[:, 0] - 5.0,
+                                                                                pts[:, 1] - 0.02))
+    assert np.all(size >= to_other - 1e-9) and np.all(size < 0.3)
+
+
+def test_touching_vessels_are_moved_apart_before_meshing():
+    # Two daughters whose axes cross (tests/test_solids.py): meshed from the tree they are
+    # moved apart first (named in the warnings), so the fluid does not join them there and
+    # the prism layers do not fold; the surface then has no handle (Euler characteristic 2).
+    up, down = np.array([1.0, 0.0, 1.0]) / np.sqrt(2), np.array([1.0, 0.0, -1.0]) / np.sqrt(2)
+    tree = _tree([
+        {"id": 0, "parent": None, "name": "root", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+         "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "name": "up", "points": _line([0, 0, 5], up, 25).tolist(),
+         "radius": [1.0] * 30},
+        {"id": 2, "parent": 0, "name": "down", "points": _line([0, 0, 25], down, 25).tolist(),
+         "radius": [1.0] * 30},
+    ])
+    surf = vc.cfd.surface_mesh(tree, edge_factor=0.5)
+    mesh = surf.metadata["cfd_mesh"]
+    assert any("branch 1 (up)" in w and "moved up to 1.1" in w for w in mesh.warnings)
+    assert not any("touch away" in w for w in mesh.warnings)
+    assert surf.is_watertight and surf.euler_number == 2
+    kept = vc.cfd.load_solid(tree, separate_contacts=False)
+    assert any("touch away from a junction" in w for w in kept.warnings)

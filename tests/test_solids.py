@@ -308,20 +308,26 @@ def test_exact_distance_to_the_solid(y_solid):
         y_solid.distance("not points")
 
 
-def test_vessels_touching_away_from_a_junction_are_reported(y_solid):
-    # Two daughters of a straight root (r = 2 along z): one leaves at z = 5 towards +x+z,
-    # the other at z = 25 towards +x-z; their axes cross at (10, 0, 15), 14.1 mm along
-    # each, far from both junctions. Only that contact is reported, naming both.
-    up, down = np.array([1.0, 0.0, 1.0]), np.array([1.0, 0.0, -1.0])
-    tree = _tree([
+UP, DOWN = np.array([1.0, 0.0, 1.0]) / np.sqrt(2), np.array([1.0, 0.0, -1.0]) / np.sqrt(2)
+
+
+def _crossing_tree():
+    """Two daughters (r = 1) of a straight root (r = 2 along z): one leaves at z = 5
+    towards +x+z, the other at z = 25 towards +x-z; their axes cross at (10, 0, 15),
+    14.1 mm along each, far from both junctions."""
+    return _tree([
         {"id": 0, "parent": None, "name": "root", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
          "radius": [2.0] * 30},
-        {"id": 1, "parent": 0, "name": "up", "points": _line([0, 0, 5], up, 25).tolist(),
+        {"id": 1, "parent": 0, "name": "up", "points": _line([0, 0, 5], UP, 25).tolist(),
          "radius": [1.0] * 30},
-        {"id": 2, "parent": 0, "name": "down", "points": _line([0, 0, 25], down, 25).tolist(),
+        {"id": 2, "parent": 0, "name": "down", "points": _line([0, 0, 25], DOWN, 25).tolist(),
          "radius": [1.0] * 30},
     ])
-    solid = tree.solid()
+
+
+def test_vessels_touching_away_from_a_junction_are_reported(y_solid):
+    # Only the crossing of the two daughters is reported, naming both.
+    solid = _crossing_tree().solid()
     touch = [w for w in solid.warnings if "touch away from a junction" in w]
     assert len(touch) == 1
     assert "branches 1 (up) and 2 (down)" in touch[0]
@@ -329,3 +335,40 @@ def test_vessels_touching_away_from_a_junction_are_reported(y_solid):
     np.testing.assert_allclose(np.array(where, float), [10.0, 0.0, 15.0], atol=0.3)
     assert solid.check()["watertight"]
     assert not [w for w in y_solid.warnings if "touch away" in w]
+
+
+def test_separated_moves_crossing_vessels_apart_along_their_common_normal():
+    # The daughters' axes meet at (10, 0, 15); their common normal is y. Equal radii:
+    # each moves half of r1 + r2 + clearance = 2.2 mm, +y and -y, near the crossing
+    # only; the root and both junctions stay where they are.
+    tree = _crossing_tree()
+    sep = tree.separated(clearance_mm=0.2)
+    a, b = sep[1].sample(0.05)[0], sep[2].sample(0.05)[0]
+    axis_gap = np.linalg.norm(a[:, None] - b[None], axis=2).min()
+    assert 2.2 - 0.03 <= axis_gap <= 2.2 + 0.1
+    root = sep[0].sample(0.5)[0]
+    np.testing.assert_allclose(root[:, :2], 0.0, atol=1e-6)
+    for bid, start, d in ((1, [0, 0, 5], UP), (2, [0, 0, 25], DOWN)):
+        pts = sep[bid].sample(0.05)[0]
+        s = (pts - start) @ d  # arc position along the original axis
+        off = pts - np.asarray(start) - s[:, None] * d  # shift away from the original axis
+        np.testing.assert_allclose(off[:, [0, 2]], 0.0, atol=0.02)  # only along y
+        y = off[:, 1] * (1 if bid == 1 else -1)
+        near = np.abs(s - 14.142) < 0.5
+        assert 1.1 - 0.02 <= y[near].max() <= 1.1 + 0.1
+        assert np.abs(off[s < 3.0]).max() < 0.02  # the junction keeps its place
+        assert np.abs(off[s > 24.0]).max() < 0.02  # the far end does not move
+        assert any("moved up to 1.1" in w and "touched away from a junction" in w for w in sep[bid].warnings)
+    solid = sep.solid()
+    assert not [w for w in solid.warnings if "touch away" in w]
+    assert solid.check()["watertight"]
+    # a tree without contacts is not changed
+    y = _tree([{"id": 0, "parent": None, "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+                "radius": [2.0] * 30},
+               {"id": 1, "parent": 0, "points": _line([0, 0, 20], LEFT, 25).tolist(), "radius": [1.4] * 30}])
+    same = y.separated()
+    for bid in (0, 1):
+        np.testing.assert_array_equal(same[bid].spline.c, y.rebuilt()[bid].spline.c)
+        assert not same[bid].warnings
+    with pytest.raises(vc.VesselcadError, match="clearance_mm"):
+        tree.separated(clearance_mm=-1)

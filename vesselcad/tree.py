@@ -55,6 +55,8 @@ CHILD_RADIUS_SHARE = 0.9
 MAX_START_GAP_RADII = 2.0
 #: Smallest radius a pipe gets (mm).
 MIN_RADIUS_MM = 0.05
+#: Wall-to-wall distance :meth:`VesselTree.separated` leaves between vessels that touched (mm).
+CLEARANCE_MM = 0.2
 
 
 # ------------------------------------------------------------------- fitting
@@ -551,6 +553,162 @@ class VesselTree:
                 _project_params(par.spline, b.spline(b.domain[0])[None])[0]
             b.parent_s_mm = float(s)
 
+    def separated(self, clearance_mm: float = CLEARANCE_MM, tol_mm: float = TOL_MM, merge: bool = True,
+                  max_merge_angle_deg: float = MAX_MERGE_ANGLE_DEG, max_rounds: int = 200) -> VesselTree:
+        """A copy in which vessels that touch away from a junction are moved apart.
+
+        Two vessels of one tree never share a wall away from their junction,
+        but a reconstruction (or a phantom) can bring them closer than their
+        radii: the solid then joins them (a handle with a sharp crease, a
+        flow path that is not there, and boundary-layer prisms that fold).
+        Each such contact (:meth:`solid` warns about them) is cleared by
+        moving the two centrelines apart along their common normal until their
+        walls are at least ``clearance_mm`` apart; the thinner vessel moves
+        more (shares inverse to the radii). The shift is spread smoothly along
+        each vessel (Gaussian, sigma two radii, at least 1 mm), a child
+        follows its parent at its start and reaches its own shift over a few
+        radii, and the rounds repeat until no contact is left. Radii are not
+        changed. Every moved branch gets a warning saying by how much and
+        from which vessel.
+
+        Parameters
+        ----------
+        clearance_mm : float
+            Smallest wall-to-wall distance left between vessels (mm).
+        tol_mm, merge, max_merge_angle_deg
+            As for :meth:`pipe_specs` (the tree is rebuilt and merged first).
+        max_rounds : int
+            Upper bound on the push rounds.
+
+        Returns
+        -------
+        VesselTree
+            Rebuilt (and merged) like the input of :meth:`solid`; unchanged
+            branches keep their centrelines exactly.
+        """
+        if not (isinstance(clearance_mm, int | float) and np.isfinite(clearance_mm) and clearance_mm >= 0):
+            raise ArgumentError(f"clearance_mm: expected a number >= 0, got {clearance_mm!r}")
+        if not (isinstance(max_rounds, int) and max_rounds > 0):
+            raise ArgumentError(f"max_rounds: expected a positive integer, got {max_rounds!r}")
+        tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
+        if merge:
+            tree = tree.merged(max_merge_angle_deg, tol_mm)
+        order = tree.order()
+        if len(order) < 2:
+            return tree
+        step = 0.25
+        params, pts, rad, tan = [], [], [], []
+        for bid in order:
+            b = tree[bid]
+            a, e = b.domain
+            s = np.linspace(a, e, max(int(np.ceil((e - a) / step)), 1) + 1)
+            params.append(s)
+            pts.append(b.spline(s))
+            rad.append(b.radius_at(s))
+            d1 = b.spline.derivative()(s)
+            tan.append(d1 / np.linalg.norm(d1, axis=1, keepdims=True))
+        sizes = np.array([len(s) for s in params])
+        first = np.r_[0, np.cumsum(sizes)[:-1]]
+        p0 = np.vstack(pts)
+        p, r, t = p0.copy(), np.concatenate(rad), np.vstack(tan)
+        o = np.repeat(np.arange(len(order)), sizes)
+        n = np.concatenate([np.arange(k) for k in sizes])
+        slot = {bid: k for k, bid in enumerate(order)}
+        attach: dict[int, int] = {}
+        ramp: dict[int, np.ndarray] = {}
+        for k, bid in enumerate(order):
+            b = tree[bid]
+            if b.parent is None:
+                continue
+            q = slot[b.parent]
+            ps = params[q]
+            attach[k] = first[q] + int(np.argmin(np.abs(ps - (b.parent_s_mm or ps[0]))))
+            reach = 2.0 * (float(r[attach[k]]) + float(rad[k][0]))
+            x = np.clip((params[k] - params[k][0]) / reach, 0.0, 1.0)
+            ramp[k] = x * x * (3 - 2 * x)
+        partners: dict[int, set[int]] = {k: set() for k in range(len(order))}
+        for _round in range(max_rounds):
+            i, j, gap = _contact_pairs(p, r, o, n, clearance_mm)
+            if not len(i):
+                break
+            for a_, b_ in set(zip(o[i].tolist(), o[j].tolist(), strict=True)):
+                partners[a_].add(b_)
+                partners[b_].add(a_)
+            v = p[i] - p[j]
+            normal = np.cross(t[i], t[j])
+            nn = np.linalg.norm(normal, axis=1)
+            # one side per pair of vessels (axes through each other leave v . normal ~ 0)
+            along = np.einsum("ij,ij->i", v, normal)
+            key = o[i] * len(order) + o[j]
+            keys, inv = np.unique(key, return_inverse=True)
+            side = np.sign(np.bincount(inv, along, len(keys)))[inv]
+            side[side == 0] = 1.0
+            across = v - np.einsum("ij,ij->i", v, t[i])[:, None] * t[i]
+            u = np.where((nn > 0.25)[:, None], normal * (side / np.maximum(nn, 1e-12))[:, None], across)
+            un = np.linalg.norm(u, axis=1)
+            weak = un < 1e-9
+            if np.any(weak):  # axes through each other and parallel: any direction across
+                helper = np.where((np.abs(t[i][weak, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+                u[weak] = np.cross(t[i][weak], helper)
+                un[weak] = np.linalg.norm(u[weak], axis=1)
+            u /= un[:, None]
+            need = clearance_mm - gap + 0.02
+            share_i = r[j] / (r[i] + r[j])
+            push = np.zeros_like(p)
+            count = np.zeros(len(p))
+            np.add.at(push, i, (share_i * need)[:, None] * u)
+            np.add.at(push, j, -((1.0 - share_i) * need)[:, None] * u)
+            np.add.at(count, i, 1.0)
+            np.add.at(count, j, 1.0)
+            push /= np.maximum(count, 1.0)[:, None]
+            moved = np.zeros_like(p)
+            for k in range(len(order)):
+                sl = slice(first[k], first[k] + sizes[k])
+                d = push[sl]
+                peak = float(np.linalg.norm(d, axis=1).max())
+                if peak > 0:
+                    sigma = max(2.0 * float(r[sl].mean()), 1.0) / step
+                    sm = ndimage.gaussian_filter1d(d, sigma, axis=0, mode="nearest")
+                    d = sm * min(peak / max(float(np.linalg.norm(sm, axis=1).max()), 1e-12), 5.0)
+                    big = np.linalg.norm(d, axis=1)
+                    d *= np.minimum(1.0, 0.5 / np.maximum(big, 1e-12))[:, None]
+                if k in attach:  # follow the parent at the start, own shift after a few radii
+                    w = ramp[k][:, None]
+                    d = d * w + moved[attach[k]] * (1.0 - w)
+                moved[sl] = d
+            p += moved
+        i, j, _gap = _contact_pairs(p, r, o, n, clearance_mm)
+        left = np.unique(o[np.r_[i, j]])
+        out = []
+        for k, bid in enumerate(order):
+            b = tree[bid]
+            sl = slice(first[k], first[k] + sizes[k])
+            shift = np.linalg.norm(p[sl] - p0[sl], axis=1)
+            if shift.max() < 1e-3:  # (a child following a parent that barely moved)
+                out.append(replace(b, warnings=list(b.warnings)))
+                continue
+            names = ", ".join(f"{tree[order[q]].id} ({tree[order[q]].name})" for q in sorted(partners[k]))
+            why = (f"moved up to {shift.max():.2f} mm to keep {clearance_mm:g} mm from branch"
+                   f"{'es' if len(partners[k]) > 1 else ''} {names}" if names else
+                   f"moved up to {shift.max():.2f} mm with its parent")
+            if names and k in left:
+                why += " (not fully cleared)"
+            elif names:
+                why += ", which it touched away from a junction"
+            nb = replace(b, points=p[sl].copy(), radius=r[sl].copy(), spline=None, radius_law=None,
+                         parent_s_mm=None, warnings=list(b.warnings) + [why])
+            out.append(nb)
+        result = []
+        for b in out:
+            if b.spline is None:  # refit the moved centreline and its radius
+                spl, err = fit_spine(b.points, tol_mm)
+                law = fit_radius_law(_project_params(spl, b.points), b.radius, float(spl.t[-4] - spl.t[3]))
+                b = replace(b, spline=spl, radius_law=law, fit_error_mm=err)
+            result.append(b)
+        final = VesselTree(result)
+        final._locate_children()
+        return final
+
     # -------------------------------------------------------------- solid
     def pipe_specs(self, tol_mm: float = TOL_MM, merge: bool = True,
                    max_merge_angle_deg: float = MAX_MERGE_ANGLE_DEG) -> list[dict[str, Any]]:
@@ -777,20 +935,58 @@ def _start_inside(b: TreeBranch, par: TreeBranch
     return spl, law, [note], r_par
 
 
-def _contacts(specs: list[dict[str, Any]], step: float = 0.25) -> list[str]:
-    """Warnings for vessels whose walls meet away from their junctions.
+def _contact_pairs(p: np.ndarray, r: np.ndarray, o: np.ndarray, n: np.ndarray,
+                   clearance: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample pairs of two vessels whose walls come closer than ``clearance`` away from a junction.
 
-    Two pipes touch where their axes come closer than the sum of their radii.
-    Where that begins at the start of one of them (a child starting inside its
-    parent, two daughters leaving one point) and runs on without a break, it is
-    their junction and not reported; any other contact gives the union a sharp
-    crease (or a handle), which CFD boundary layers cannot follow. One warning
-    per pair of vessels, at their deepest overlap.
+    ``p``, ``r``: axis samples and radii of all vessels; ``o``: the vessel of
+    each sample; ``n``: its index along that vessel (0 at the start). Two
+    vessels touch where their axes come closer than the sum of their radii
+    (plus ``clearance``). Where that begins at the start of one of them (a
+    child starting inside its parent, two daughters leaving one point) and runs
+    on without a break, it is their junction and left out (walls that cut
+    into each other again after their junction are not). Returns the sample
+    indices ``i`` (of the vessel listed first, lower ``o``), ``j`` and the gaps
+    (mm, negative where the walls cut into each other).
     """
     from scipy.spatial import cKDTree
 
-    if len(specs) < 2:
-        return []
+    empty = np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    pairs = cKDTree(p).query_pairs(2.0 * float(r.max()) + clearance, output_type="ndarray")
+    if not len(pairs):
+        return empty
+    i, j = pairs[:, 0], pairs[:, 1]
+    swap = o[i] > o[j]
+    i, j = np.where(swap, j, i), np.where(swap, i, j)
+    gap = np.linalg.norm(p[i] - p[j], axis=1) - r[i] - r[j]
+    touch = (o[i] != o[j]) & (gap < clearance)
+    i, j, gap = i[touch], j[touch], gap[touch]
+    if not len(i):
+        return empty
+
+    def junction_run(idx: np.ndarray) -> int:
+        """Length of the unbroken run of contact samples from a vessel's start (0 if none)."""
+        have = np.zeros(int(idx.max()) + 2, bool)
+        have[idx] = True
+        return int(np.argmin(have)) if have[0] else 0
+
+    def away(na: np.ndarray, nb: np.ndarray) -> np.ndarray:
+        return (na >= junction_run(na)) & (nb >= junction_run(nb))
+
+    keep = np.zeros(len(i), bool)
+    pair_of = o[i] * (int(o.max()) + 1) + o[j]
+    for key in np.unique(pair_of):
+        sel = np.flatnonzero(pair_of == key)
+        na, nb = n[i[sel]], n[j[sel]]
+        keep[sel] = away(na, nb)
+        cut = gap[sel] < 0
+        if clearance > 0 and cut.any():  # walls that cut into each other again after the junction
+            keep[sel[cut]] |= away(na[cut], nb[cut])
+    return i[keep], j[keep], gap[keep]
+
+
+def _spec_samples(specs: list[dict[str, Any]], step: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     pts, rad, owner, index = [], [], [], []
     for k, sp in enumerate(specs):
         spine, law = sp["spine"], sp["radius"]
@@ -800,37 +996,30 @@ def _contacts(specs: list[dict[str, Any]], step: float = 0.25) -> list[str]:
         rad.append(np.ravel(law(u)))
         owner.append(np.full(len(u), k))
         index.append(np.arange(len(u)))
-    p, r, o, n = np.vstack(pts), np.concatenate(rad), np.concatenate(owner), np.concatenate(index)
-    pairs = cKDTree(p).query_pairs(2.0 * float(r.max()), output_type="ndarray")
-    if not len(pairs):
+    return np.vstack(pts), np.concatenate(rad), np.concatenate(owner), np.concatenate(index)
+
+
+def _contacts(specs: list[dict[str, Any]], step: float = 0.25) -> list[str]:
+    """Warnings for vessels whose walls meet away from their junctions.
+
+    Any contact that is not a junction (:func:`_contact_pairs`) gives the union
+    a sharp crease (or a handle), which CFD boundary layers cannot follow. One
+    warning per pair of vessels, at their deepest overlap.
+    """
+    if len(specs) < 2:
         return []
-    i, j = pairs[:, 0], pairs[:, 1]
-    swap = o[i] > o[j]
-    i, j = np.where(swap, j, i), np.where(swap, i, j)
-    gap = np.linalg.norm(p[i] - p[j], axis=1) - r[i] - r[j]
-    touch = (o[i] != o[j]) & (gap < 0)
-    i, j, gap = i[touch], j[touch], gap[touch]
-
-    def junction_run(idx: np.ndarray) -> int:
-        """Length of the unbroken run of contact samples from a vessel's start (0 if none)."""
-        have = np.zeros(int(idx.max()) + 2, bool)
-        have[idx] = True
-        return int(np.argmin(have)) if have[0] else 0
-
+    p, r, o, _n = _spec_samples(specs, step)
+    i, j, gap = _contact_pairs(p, r, o, _n)
     out = []
     for a, b in sorted({(int(x), int(y)) for x, y in zip(o[i], o[j], strict=True)}):
-        sel = (o[i] == a) & (o[j] == b)
-        na, nb = n[i[sel]], n[j[sel]]
-        away = (na >= junction_run(na)) & (nb >= junction_run(nb))
-        if not away.any():
-            continue
-        k = np.flatnonzero(sel)[away][np.argmin(gap[sel][away])]
+        sel = np.flatnonzero((o[i] == a) & (o[j] == b))
+        k = sel[np.argmin(gap[sel])]
         x, y, z = 0.5 * (p[i[k]] + p[j[k]])
         first, second = specs[a], specs[b]
         out.append(f"branches {first['id']} ({first['name']}) and {second['id']} ({second['name']}) touch "
                    f"away from a junction, around ({x:.1f}, {y:.1f}, {z:.1f}) mm (the walls cut up to "
                    f"{-gap[k]:.2f} mm into each other): the solid joins them there (a handle, with a sharp "
-                   "crease that CFD boundary layers may not follow)")
+                   "crease that CFD boundary layers may not follow; VesselTree.separated() moves them apart)")
     return out
 
 

@@ -287,7 +287,8 @@ def _cell_volumes(points: np.ndarray, c: np.ndarray, kind: str) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- input
-def load_solid(source: Any, flow_extensions: float | Sequence[float] = 0.0) -> Any:
+def load_solid(source: Any, flow_extensions: float | Sequence[float] = 0.0,
+               separate_contacts: bool = True) -> Any:
     """The :class:`~vesselcad.kernel.VesselSolid` to mesh, from whatever the user has.
 
     Parameters
@@ -299,6 +300,13 @@ def load_solid(source: Any, flow_extensions: float | Sequence[float] = 0.0) -> A
     flow_extensions : float or (float, float)
         Flow extension length in diameters at the inlet and outlets (one
         number for both, or ``(inlet, outlet)``).
+    separate_contacts : bool
+        For a tree (or a file holding one): first move apart vessels that touch
+        away from a junction (:meth:`VesselTree.separated`, 0.2 mm wall
+        clearance), so the fluid domain has no false connection between them
+        and no knife-edge crease that folds the boundary layers. A moved branch
+        is named in the warnings with how far it moved. A solid is meshed as
+        it is.
     """
     from ..kernel.solid import VesselSolid
     from ..tree import VesselTree
@@ -307,7 +315,7 @@ def load_solid(source: Any, flow_extensions: float | Sequence[float] = 0.0) -> A
     if isinstance(source, VesselSolid):
         solid = source
     elif isinstance(source, VesselTree):
-        solid = source.solid()
+        solid = (source.separated() if separate_contacts else source).solid()
     elif isinstance(source, str | os.PathLike):
         path = Path(source)
         if path.is_dir():
@@ -323,7 +331,7 @@ def load_solid(source: Any, flow_extensions: float | Sequence[float] = 0.0) -> A
             tree = VesselTree.from_truth(path)
         else:
             tree = VesselTree.from_json(path)
-        solid = tree.solid()
+        solid = (tree.separated() if separate_contacts else tree).solid()
     else:
         raise ArgumentError("source: expected a VesselSolid, a VesselTree or a path, got "
                             f"{type(source).__name__}")
@@ -447,13 +455,20 @@ def _match_faces(gmsh: Any, solid: Any, caps: list[dict[str, Any]]) -> dict[int,
 
 def _short_curves(gmsh: Any, field: RadiusField, edge_factor: float, min_size: float
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """End points of B-rep edges much shorter than the elements around them, with their length.
+    """Places where B-rep edges come much closer together than the elements around them.
 
     Where two seams or two junction curves cross close together the fused solid
-    has edges of a few micrometres; elements must shrink smoothly to them or
-    they come out as slivers.
+    has edges of a few micrometres; where a junction curve passes a seam
+    without touching it (18 um on a phantom tree) the two edges are as close
+    but no edge is short. Elements must shrink smoothly to such gaps or they
+    come out as needles and slivers (and the boundary-layer prisms on them).
+    Returns the points and the sizes they need.
     """
+    from scipy.spatial import cKDTree
+
     pts, size = [], []
+    samples, owner = [], []
+    vertices = np.array([gmsh.model.getValue(0, v, []) for _d, v in gmsh.model.getEntities(0)]).reshape(-1, 3)
     for _d, c in gmsh.model.getEntities(1):
         length = gmsh.model.occ.getMass(1, c)
         ends = [np.array(gmsh.model.getValue(0, v, [])) for v in gmsh.model.getAdjacencies(1, c)[1]]
@@ -465,6 +480,26 @@ def _short_curves(gmsh: Any, field: RadiusField, edge_factor: float, min_size: f
             for p in (*ends, mid):
                 pts.append(p)
                 size.append(max(length, 1e-4))
+        lo, hi = gmsh.model.getParametrizationBounds(1, c)
+        u = np.linspace(lo[0], hi[0], max(int(np.ceil(length / 0.04)), 2) + 1)
+        samples.append(np.array(gmsh.model.getValue(1, c, u)).reshape(-1, 3))
+        owner.append(np.full(len(u), c))
+    if samples and len(vertices):
+        xyz, who = np.vstack(samples), np.concatenate(owner)
+        reach = 0.5 * max(edge_factor * float(field.radius.max()), min_size)
+        pairs = cKDTree(xyz).query_pairs(reach, output_type="ndarray")
+        pairs = pairs[who[pairs[:, 0]] != who[pairs[:, 1]]]
+        if len(pairs):
+            a, b = xyz[pairs[:, 0]], xyz[pairs[:, 1]]
+            gap = np.linalg.norm(a - b, axis=1)
+            target = np.maximum(edge_factor * field(0.5 * (a + b)), min_size)
+            to_vertex = cKDTree(vertices).query(0.5 * (a + b))[0]
+            # close for the elements, and not merely two edges leaving one vertex (unless
+            # within 17 degrees of each other); samples at a vertex itself do not count
+            tight = (gap < 0.5 * target) & (gap < 0.3 * to_vertex) & (to_vertex > 1e-3)
+            for k in np.flatnonzero(tight):
+                pts += [a[k], b[k]]
+                size += [max(float(gap[k]), 5e-3)] * 2
     return np.array(pts).reshape(-1, 3), np.array(size)
 
 
@@ -523,12 +558,13 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
           max_size: float | None, flow_extensions: float | Sequence[float], cap_segments: int,
           boundary_layers: int, first_layer: float, first_layer_mm: float | None, growth: float,
           optimize: bool, threads: int | None, verbose: bool, progress: bool,
-          gmsh_options: dict[str, float] | None = None) -> CFDMesh:
+          gmsh_options: dict[str, float] | None = None, separate_contacts: bool = True) -> CFDMesh:
     settings = {"edge_factor": edge_factor, "min_size": min_size, "max_size": max_size,
                 "flow_extensions": flow_extensions if isinstance(flow_extensions, int | float)
                 else list(flow_extensions), "cap_segments": cap_segments,
                 "boundary_layers": boundary_layers, "first_layer": first_layer,
-                "first_layer_mm": first_layer_mm, "growth": growth, "optimize": optimize}
+                "first_layer_mm": first_layer_mm, "growth": growth, "optimize": optimize,
+                "separate_contacts": bool(separate_contacts)}
     _check_args(edge_factor, min_size, max_size, cap_segments, boundary_layers, first_layer, first_layer_mm,
                 growth)
     stages = ["solid", "surface mesh"] + (["volume mesh"] if volume else []) + ["quality"]
@@ -545,7 +581,7 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    solid = load_solid(source, flow_extensions)
+    solid = load_solid(source, flow_extensions, separate_contacts)
     caps = solid.caps()
     field = RadiusField.from_solid(solid)
     r_min, r_max = float(field.radius.min()), float(field.radius.max())
@@ -640,7 +676,8 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
     return mesh
 
 
-def inverted_sites(mesh: CFDMesh, radius_mm: float = 1.0) -> list[tuple[np.ndarray, int, list[int]]]:
+def inverted_sites(mesh: CFDMesh, radius_mm: float = 1.0, threshold: float = 0.0
+                   ) -> list[tuple[np.ndarray, int, list[int]]]:
     """Where a volume mesh has inverted elements (scaled Jacobian <= 0), and which branches' walls are there.
 
     Parameters
@@ -650,6 +687,9 @@ def inverted_sites(mesh: CFDMesh, radius_mm: float = 1.0) -> list[tuple[np.ndarr
     radius_mm : float
         Inverted elements closer than this are one site; wall facets closer
         than this to a site name its branches.
+    threshold : float
+        Elements whose scaled Jacobian is at most this count (0: inverted
+        ones; e.g. 0.1 for the poor ones as well).
 
     Returns
     -------
@@ -657,6 +697,7 @@ def inverted_sites(mesh: CFDMesh, radius_mm: float = 1.0) -> list[tuple[np.ndarr
         One entry per site, most elements first; ``centre`` (mm) is the mean of
         the elements' centroids.
     """
+    from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
@@ -666,13 +707,16 @@ def inverted_sites(mesh: CFDMesh, radius_mm: float = 1.0) -> list[tuple[np.ndarr
         raise ArgumentError(f"inverted_sites: expected a CFDMesh, got {type(mesh).__name__}")
     if not (isinstance(radius_mm, int | float) and radius_mm > 0):
         raise ArgumentError(f"radius_mm: expected a positive number, got {radius_mm!r}")
-    centres = [mesh.points[c[scaled_jacobian(mesh.points, c, kind) <= 0]].mean(axis=1)
+    if not (isinstance(threshold, int | float) and -1.0 <= threshold <= 1.0):
+        raise ArgumentError(f"threshold: expected a scaled Jacobian in [-1, 1], got {threshold!r}")
+    centres = [mesh.points[c[scaled_jacobian(mesh.points, c, kind) <= threshold]].mean(axis=1)
                for kind, c in mesh.cells.items() if len(c)]
     pts = np.vstack(centres) if centres else np.empty((0, 3))
     if not len(pts):
         return []
-    _n, label = connected_components(cKDTree(pts).sparse_distance_matrix(cKDTree(pts), radius_mm),
-                                     directed=False)
+    pairs = cKDTree(pts).query_pairs(radius_mm, output_type="ndarray")
+    link = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(pts), len(pts)))
+    _n, label = connected_components(link, directed=False)
     walls = [(mesh.points[f[mesh.facet_ids[k] == mesh.groups["wall"]]].mean(axis=1),
               mesh.facet_branch[k][mesh.facet_ids[k] == mesh.groups["wall"]]) for k, f in mesh.facets.items()]
     wall_xyz = np.vstack([w[0] for w in walls])
@@ -820,7 +864,8 @@ def _extract(gmsh: Any, faces: dict[int, _Face], caps: list[dict[str, Any]], fie
 def surface_mesh(source: Any, edge_factor: float = 0.3, flow_extensions: float | Sequence[float] = 0.0, *,
                  min_size: float | None = None, max_size: float | None = None, cap_segments: int = 32,
                  optimize: bool = True, threads: int | None = None, verbose: bool = False,
-                 progress: bool = False, gmsh_options: dict[str, float] | None = None) -> Any:
+                 progress: bool = False, gmsh_options: dict[str, float] | None = None,
+                 separate_contacts: bool = True) -> Any:
     """A closed, labelled triangle surface of a vessel tree for CFD.
 
     Parameters
@@ -849,6 +894,9 @@ def surface_mesh(source: Any, edge_factor: float = 0.3, flow_extensions: float |
         Show a progress bar over the stages.
     gmsh_options : dict, optional
         Further gmsh options (``{"Mesh.Algorithm3D": 10}``), set after vesselcad's.
+    separate_contacts : bool
+        Move vessels that touch away from a junction apart first (trees only;
+        see :func:`load_solid`).
 
     Returns
     -------
@@ -868,7 +916,8 @@ def surface_mesh(source: Any, edge_factor: float = 0.3, flow_extensions: float |
     mesh = _mesh(source, volume=False, edge_factor=edge_factor, min_size=min_size, max_size=max_size,
                  flow_extensions=flow_extensions, cap_segments=cap_segments, boundary_layers=0,
                  first_layer=0.02, first_layer_mm=None, growth=1.2, optimize=optimize, threads=threads,
-                 verbose=verbose, progress=progress, gmsh_options=gmsh_options)
+                 verbose=verbose, progress=progress, gmsh_options=gmsh_options,
+                 separate_contacts=separate_contacts)
     tm = mesh.surface()
     tm.metadata["cfd_mesh"] = mesh
     return tm
@@ -878,14 +927,14 @@ def volume_mesh(source: Any, edge_factor: float = 0.3, flow_extensions: float | 
                 boundary_layers: int = 0, first_layer: float = 0.02, first_layer_mm: float | None = None,
                 growth: float = 1.2, min_size: float | None = None, max_size: float | None = None,
                 cap_segments: int = 32, optimize: bool = True, threads: int | None = None,
-                verbose: bool = False, progress: bool = False, gmsh_options: dict[str, float] | None = None
-                ) -> CFDMesh:
+                verbose: bool = False, progress: bool = False, gmsh_options: dict[str, float] | None = None,
+                separate_contacts: bool = True) -> CFDMesh:
     """A tetrahedral (and, with boundary layers, prismatic) volume mesh of a vessel tree.
 
     Parameters
     ----------
     source, edge_factor, flow_extensions, min_size, max_size, cap_segments, optimize, threads, verbose, \
-progress, gmsh_options
+progress, gmsh_options, separate_contacts
         As for :func:`surface_mesh`.
     boundary_layers : int
         Number of prism layers along the wall (0: tetrahedra only).
@@ -911,4 +960,5 @@ progress, gmsh_options
     return _mesh(source, volume=True, edge_factor=edge_factor, min_size=min_size, max_size=max_size,
                  flow_extensions=flow_extensions, cap_segments=cap_segments, boundary_layers=boundary_layers,
                  first_layer=first_layer, first_layer_mm=first_layer_mm, growth=growth, optimize=optimize,
-                 threads=threads, verbose=verbose, progress=progress, gmsh_options=gmsh_options)
+                 threads=threads, verbose=verbose, progress=progress, gmsh_options=gmsh_options,
+                 separate_contacts=separate_contacts)
