@@ -19,6 +19,11 @@ names), and prepares the branches for the pipes:
    each child starts on its parent's centreline (inside the parent), and the
    NURBS pipes are fused into one solid in ``vesselcad.kernel``.
 
+Vessels of one tree that touch away from their junction (a reconstruction
+error, or random phantom twigs) are reported by :meth:`VesselTree.solid`;
+:meth:`VesselTree.separated` moves them apart (the CFD mesher does so by
+default).
+
 Every branch keeps the reasons for what was changed in ``warnings``.
 """
 
