@@ -372,3 +372,48 @@ def test_separated_moves_crossing_vessels_apart_along_their_common_normal():
         assert not same[bid].warnings
     with pytest.raises(vc.VesselcadError, match="clearance_mm"):
         tree.separated(clearance_mm=-1)
+
+
+def _direction(deg):
+    a = np.radians(deg)
+    return np.array([np.sin(a), 0.0, np.cos(a)])
+
+
+def test_separated_opens_siblings_that_leave_side_by_side_like_a_30_degree_split():
+    # Two r = 1 daughters leave (0, 0, 20) at 43 and 47 degrees: 4 degrees apart, their
+    # walls stay fused for 28.7 mm (2 s sin 2 deg < 2). Past L = 2 (r1 + r2) = 4 mm they
+    # must open like a 30-degree split: walls 0.2 + (s - 4) / 2 mm apart, at most
+    # 0.2 + r = 1.2 mm (axes 3.2 mm apart) from s = 6 mm on. Both move in their own
+    # plane (y = 0), the junction stays.
+    start = np.array([0.0, 0.0, 20.0])
+    tree = _tree([
+        {"id": 0, "parent": None, "name": "root", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+         "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "name": "a", "points": _line(start, _direction(43), 25).tolist(),
+         "radius": [1.0] * 30},
+        {"id": 2, "parent": 0, "name": "b", "points": _line(start, _direction(47), 25).tolist(),
+         "radius": [1.0] * 30},
+    ])
+    assert any("branches 1 (a) and 2 (b) touch away from a junction" in w for w in tree.solid().warnings)
+    sep = tree.separated(clearance_mm=0.2)
+    a, b = sep[1].sample(0.05)[0], sep[2].sample(0.05)[0]
+    s_a = np.linalg.norm(a - start, axis=1)
+    dist = np.linalg.norm(a[:, None] - b[None], axis=2).min(axis=1)
+    far = s_a > 6.5
+    assert dist[far].min() >= 3.2 - 0.05
+    for pts in (a, b):
+        np.testing.assert_allclose(pts[:, 1], 0.0, atol=0.02)
+        near = np.linalg.norm(pts - start, axis=1) < 0.5
+        off = np.abs(np.cross(pts[near] - start, _direction(45)))  # within 0.5 mm of the old start
+        assert off.max() < 0.06
+    assert any("touched away from a junction" in w for w in sep[1].warnings + sep[2].warnings)
+    solid = sep.solid()
+    assert not [w for w in solid.warnings if "touch away" in w]
+    assert solid.check()["watertight"]
+    # a child that leaves its parent at 8 degrees is its own junction, however long: not moved
+    shallow = _tree([
+        {"id": 0, "parent": None, "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(), "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "points": _line([0, 0, 10], _direction(8), 25).tolist(),
+         "radius": [1.0] * 30}])
+    same = shallow.separated()
+    np.testing.assert_array_equal(same[1].spline.c, shallow.rebuilt()[1].spline.c)

@@ -631,9 +631,11 @@ class VesselTree:
             reach = 2.0 * (float(r[attach[k]]) + float(rad[k][0]))
             x = np.clip((params[k] - params[k][0]) / reach, 0.0, 1.0)
             ramp[k] = x * x * (3 - 2 * x)
+        linked = {(min(k, q), max(k, q)) for k, bid in enumerate(order)
+                  if (par := tree[bid].parent) is not None for q in [slot[par]]}
         partners: dict[int, set[int]] = {k: set() for k in range(len(order))}
         for _round in range(max_rounds):
-            i, j, gap = _contact_pairs(p, r, o, n, clearance_mm)
+            i, j, gap = _contact_pairs(p, r, o, n, clearance_mm, linked, step, diverge=True)
             if not len(i):
                 break
             for a_, b_ in set(zip(o[i].tolist(), o[j].tolist(), strict=True)):
@@ -682,7 +684,7 @@ class VesselTree:
                     d = d * w + moved[attach[k]] * (1.0 - w)
                 moved[sl] = d
             p += moved
-        i, j, _gap = _contact_pairs(p, r, o, n, clearance_mm)
+        i, j, _gap = _contact_pairs(p, r, o, n, clearance_mm, linked, step, diverge=True)
         left = np.unique(o[np.r_[i, j]])
         out = []
         for k, bid in enumerate(order):
@@ -941,53 +943,90 @@ def _start_inside(b: TreeBranch, par: TreeBranch
 
 
 def _contact_pairs(p: np.ndarray, r: np.ndarray, o: np.ndarray, n: np.ndarray,
-                   clearance: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   clearance: float = 0.0, linked: set[tuple[int, int]] | None = None, step: float = 0.25,
+                   diverge: bool = False, junction: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sample pairs of two vessels whose walls come closer than ``clearance`` away from a junction.
 
     ``p``, ``r``: axis samples and radii of all vessels; ``o``: the vessel of
-    each sample; ``n``: its index along that vessel (0 at the start). Two
-    vessels touch where their axes come closer than the sum of their radii
-    (plus ``clearance``). Where that begins at the start of one of them (a
-    child starting inside its parent, two daughters leaving one point) and runs
-    on without a break, it is their junction and left out (walls that cut
-    into each other again after their junction are not). Returns the sample
-    indices ``i`` (of the vessel listed first, lower ``o``), ``j`` and the gaps
-    (mm, negative where the walls cut into each other).
+    each sample; ``n``: its index along that vessel (0 at the start, ``step``
+    mm apart). Two vessels touch where their axes come closer than the sum of
+    their radii (plus ``clearance``). Where that begins at the start of one of
+    them (a child starting inside its parent, two daughters leaving one point)
+    and runs on without a break, it is their junction and left out (walls that
+    cut into each other again after their junction are not).
+
+    ``linked`` holds the (lower, higher) vessel numbers of parent and child;
+    for any other pair (siblings, a vessel and its grandparent) the junction
+    ends where two vessels leaving one point at 30 degrees would be apart,
+    ``L = junction (r_i + r_j)`` from the start (``junction`` = 2): siblings
+    that run on side by side, fused, touch. With ``diverge``, such a pair must also open up like a
+    30-degree split after ``L``: its walls are asked to be ``clearance + (s -
+    L) / 2`` apart at ``s`` mm from the start, up to ``clearance`` plus the
+    smaller radius (a shallow split leaves a knife-edge crease that prism
+    layers cannot follow); the gaps returned for those samples are reduced by
+    the extra asked, so ``clearance - gap`` is what is missing.
+
+    Returns the sample indices ``i`` (of the vessel listed first, lower
+    ``o``), ``j`` and the gaps (mm, negative where the walls cut into each
+    other).
     """
     from scipy.spatial import cKDTree
 
     empty = np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    pairs = cKDTree(p).query_pairs(2.0 * float(r.max()) + clearance, output_type="ndarray")
+    rmax = float(r.max())
+    reach = 2.0 * rmax + clearance + (rmax if diverge else 0.0)
+    pairs = cKDTree(p).query_pairs(reach, output_type="ndarray")
     if not len(pairs):
         return empty
     i, j = pairs[:, 0], pairs[:, 1]
     swap = o[i] > o[j]
     i, j = np.where(swap, j, i), np.where(swap, i, j)
     gap = np.linalg.norm(p[i] - p[j], axis=1) - r[i] - r[j]
-    touch = (o[i] != o[j]) & (gap < clearance)
-    i, j, gap = i[touch], j[touch], gap[touch]
+    near_enough = (o[i] != o[j]) & (gap < clearance + (np.minimum(r[i], r[j]) if diverge else 0.0))
+    i, j, gap = i[near_enough], j[near_enough], gap[near_enough]
     if not len(i):
         return empty
+    touch = gap < clearance
 
-    def junction_run(idx: np.ndarray) -> int:
+    def junction_run(idx: np.ndarray, cap: int) -> int:
         """Length of the unbroken run of contact samples from a vessel's start (0 if none)."""
+        if not len(idx):
+            return 0
         have = np.zeros(int(idx.max()) + 2, bool)
         have[idx] = True
-        return int(np.argmin(have)) if have[0] else 0
+        return min(int(np.argmin(have)), cap) if have[0] else 0
 
-    def away(na: np.ndarray, nb: np.ndarray) -> np.ndarray:
-        return (na >= junction_run(na)) & (nb >= junction_run(nb))
+    def away(na: np.ndarray, nb: np.ndarray, src: np.ndarray, cap: int) -> np.ndarray:
+        """Samples past the junction runs (counted over the samples ``src``)."""
+        return (na >= junction_run(na[src], cap)) & (nb >= junction_run(nb[src], cap))
 
     keep = np.zeros(len(i), bool)
-    pair_of = o[i] * (int(o.max()) + 1) + o[j]
+    out_gap = gap.copy()
+    width = int(o.max()) + 1
+    pair_of = o[i] * width + o[j]
     for key in np.unique(pair_of):
         sel = np.flatnonzero(pair_of == key)
         na, nb = n[i[sel]], n[j[sel]]
-        keep[sel] = away(na, nb)
-        cut = gap[sel] < 0
+        t = touch[sel]
+        cap = len(p)
+        free = linked is not None and (int(key) // width, int(key) % width) not in linked
+        if free and t.any():
+            near = t & ((na == na[t].min()) | (nb == nb[t].min()))
+            cap = int(np.ceil(junction * float(np.max(r[i[sel]][near] + r[j[sel]][near])) / step))
+        keep[sel] = t & away(na, nb, t, cap)
+        cut = t & (gap[sel] < 0)
         if clearance > 0 and cut.any():  # walls that cut into each other again after the junction
-            keep[sel[cut]] |= away(na[cut], nb[cut])
-    return i[keep], j[keep], gap[keep]
+            keep[sel] |= cut & away(na, nb, cut, cap)
+        if diverge and free:
+            run_a, run_b = junction_run(na[t], len(p)), junction_run(nb[t], len(p))
+            if run_a or run_b:  # they leave one point: open up like a 30-degree split
+                s_mm = np.where(run_a > 0, na, nb) if not (run_a and run_b) else np.minimum(na, nb)
+                s_mm = s_mm * step
+                extra = np.clip(0.5 * (s_mm - cap * step), 0.0, np.minimum(r[i[sel]], r[j[sel]]))
+                short = (s_mm >= cap * step) & (gap[sel] < clearance + extra)
+                keep[sel[short]] = True
+                out_gap[sel[short]] = gap[sel[short]] - extra[short]
+    return i[keep], j[keep], out_gap[keep]
 
 
 def _spec_samples(specs: list[dict[str, Any]], step: float
@@ -1014,7 +1053,11 @@ def _contacts(specs: list[dict[str, Any]], step: float = 0.25) -> list[str]:
     if len(specs) < 2:
         return []
     p, r, o, _n = _spec_samples(specs, step)
-    i, j, gap = _contact_pairs(p, r, o, _n)
+    slot = {sp["id"]: k for k, sp in enumerate(specs)}
+    linked = {(min(k, slot[sp["parent"]]), max(k, slot[sp["parent"]])) for k, sp in enumerate(specs)
+              if sp.get("parent") in slot}
+    # a little more lenient than separated() (2.0), so what it clears is not reported after a refit
+    i, j, gap = _contact_pairs(p, r, o, _n, 0.0, linked, step, junction=2.5)
     out = []
     for a, b in sorted({(int(x), int(y)) for x, y in zip(o[i], o[j], strict=True)}):
         sel = np.flatnonzero((o[i] == a) & (o[j] == b))
