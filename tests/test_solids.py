@@ -379,12 +379,12 @@ def _direction(deg):
     return np.array([np.sin(a), 0.0, np.cos(a)])
 
 
-def test_separated_opens_siblings_that_leave_side_by_side_like_a_30_degree_split():
+def test_separated_opens_siblings_that_leave_side_by_side_like_a_wide_split():
     # Two r = 1 daughters leave (0, 0, 20) at 43 and 47 degrees: 4 degrees apart, their
-    # walls stay fused for 28.7 mm (2 s sin 2 deg < 2). Past L = 2 (r1 + r2) = 4 mm they
-    # must open like a 30-degree split: walls 0.2 + (s - 4) / 2 mm apart, at most
-    # 0.2 + r = 1.2 mm (axes 3.2 mm apart) from s = 6 mm on. Both move in their own
-    # plane (y = 0), the junction stays.
+    # walls stay fused for 28.7 mm (2 s sin 2 deg < 2). Their junction ends at
+    # L = 2 (r1 + r2) = 4 mm; from there they must open at least like a 23-degree split:
+    # walls 0.2 + 0.4 (s - 4) mm apart, at most 0.2 + r = 1.2 mm (axes 3.2 mm apart)
+    # from s = 6.5 mm on. Both move in their own plane (y = 0), the junction stays.
     start = np.array([0.0, 0.0, 20.0])
     tree = _tree([
         {"id": 0, "parent": None, "name": "root", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),

@@ -959,12 +959,14 @@ def _contact_pairs(p: np.ndarray, r: np.ndarray, o: np.ndarray, n: np.ndarray,
     for any other pair (siblings, a vessel and its grandparent) the junction
     ends where two vessels leaving one point at 30 degrees would be apart,
     ``L = junction (r_i + r_j)`` from the start (``junction`` = 2): siblings
-    that run on side by side, fused, touch. With ``diverge``, such a pair must also open up like a
-    30-degree split after ``L``: its walls are asked to be ``clearance + (s -
-    L) / 2`` apart at ``s`` mm from the start, up to ``clearance`` plus the
-    smaller radius (a shallow split leaves a knife-edge crease that prism
-    layers cannot follow); the gaps returned for those samples are reduced by
-    the extra asked, so ``clearance - gap`` is what is missing.
+    that run on side by side, fused, touch. With ``diverge``, such a pair
+    must also open up at least like a 23-degree split once their junction
+    ends (where their walls are ``clearance`` apart, at ``s0 <= L``): the
+    walls are asked to be ``clearance + 0.4 (s - s0)`` apart at ``s`` mm from
+    the start, up to ``clearance`` plus the smaller radius (a shallow split
+    leaves a knife-edge crease that prism layers cannot follow); the gaps
+    returned for those samples are reduced by the extra asked, so
+    ``clearance - gap`` is what is missing.
 
     Returns the sample indices ``i`` (of the vessel listed first, lower
     ``o``), ``j`` and the gaps (mm, negative where the walls cut into each
@@ -1019,11 +1021,12 @@ def _contact_pairs(p: np.ndarray, r: np.ndarray, o: np.ndarray, n: np.ndarray,
             keep[sel] |= cut & away(na, nb, cut, cap)
         if diverge and free:
             run_a, run_b = junction_run(na[t], len(p)), junction_run(nb[t], len(p))
-            if run_a or run_b:  # they leave one point: open up like a 30-degree split
+            if run_a or run_b:  # they leave one point: open up at least like a 23-degree split
                 s_mm = np.where(run_a > 0, na, nb) if not (run_a and run_b) else np.minimum(na, nb)
                 s_mm = s_mm * step
-                extra = np.clip(0.5 * (s_mm - cap * step), 0.0, np.minimum(r[i[sel]], r[j[sel]]))
-                short = (s_mm >= cap * step) & (gap[sel] < clearance + extra)
+                s0 = min(cap, max(run_a, run_b)) * step
+                extra = np.clip(0.4 * (s_mm - s0), 0.0, np.minimum(r[i[sel]], r[j[sel]]))
+                short = (s_mm >= s0) & (gap[sel] < clearance + extra)
                 keep[sel[short]] = True
                 out_gap[sel[short]] = gap[sel[short]] - extra[short]
     return i[keep], j[keep], out_gap[keep]
