@@ -615,7 +615,7 @@ class VesselTree:
         sizes = np.array([len(s) for s in params])
         first = np.r_[0, np.cumsum(sizes)[:-1]]
         p0 = np.vstack(pts)
-        p, r, t = p0.copy(), np.concatenate(rad), np.vstack(tan)
+        r, t = np.concatenate(rad), np.vstack(tan)
         o = np.repeat(np.arange(len(order)), sizes)
         n = np.concatenate([np.arange(k) for k in sizes])
         slot = {bid: k for k, bid in enumerate(order)}
@@ -633,57 +633,75 @@ class VesselTree:
             ramp[k] = x * x * (3 - 2 * x)
         linked = {(min(k, q), max(k, q)) for k, bid in enumerate(order)
                   if (par := tree[bid].parent) is not None for q in [slot[par]]}
-        partners: dict[int, set[int]] = {k: set() for k in range(len(order))}
-        for _round in range(max_rounds):
-            i, j, gap = _contact_pairs(p, r, o, n, clearance_mm, linked, step, diverge=True)
-            if not len(i):
-                break
-            for a_, b_ in set(zip(o[i].tolist(), o[j].tolist(), strict=True)):
-                partners[a_].add(b_)
-                partners[b_].add(a_)
-            v = p[i] - p[j]
-            normal = np.cross(t[i], t[j])
-            nn = np.linalg.norm(normal, axis=1)
-            # one side per pair of vessels (axes through each other leave v . normal ~ 0)
-            along = np.einsum("ij,ij->i", v, normal)
-            key = o[i] * len(order) + o[j]
-            keys, inv = np.unique(key, return_inverse=True)
-            side = np.sign(np.bincount(inv, along, len(keys)))[inv]
-            side[side == 0] = 1.0
-            across = v - np.einsum("ij,ij->i", v, t[i])[:, None] * t[i]
-            u = np.where((nn > 0.25)[:, None], normal * (side / np.maximum(nn, 1e-12))[:, None], across)
-            un = np.linalg.norm(u, axis=1)
-            weak = un < 1e-9
-            if np.any(weak):  # axes through each other and parallel: any direction across
-                helper = np.where((np.abs(t[i][weak, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-                u[weak] = np.cross(t[i][weak], helper)
-                un[weak] = np.linalg.norm(u[weak], axis=1)
-            u /= un[:, None]
-            need = clearance_mm - gap + 0.02
-            share_i = r[j] / (r[i] + r[j])
-            push = np.zeros_like(p)
-            count = np.zeros(len(p))
-            np.add.at(push, i, (share_i * need)[:, None] * u)
-            np.add.at(push, j, -((1.0 - share_i) * need)[:, None] * u)
-            np.add.at(count, i, 1.0)
-            np.add.at(count, j, 1.0)
-            push /= np.maximum(count, 1.0)[:, None]
-            moved = np.zeros_like(p)
-            for k in range(len(order)):
-                sl = slice(first[k], first[k] + sizes[k])
-                d = push[sl]
-                peak = float(np.linalg.norm(d, axis=1).max())
-                if peak > 0:
-                    sigma = max(2.0 * float(r[sl].mean()), 1.0) / step
-                    sm = ndimage.gaussian_filter1d(d, sigma, axis=0, mode="nearest")
-                    d = sm * min(peak / max(float(np.linalg.norm(sm, axis=1).max()), 1e-12), 5.0)
-                    big = np.linalg.norm(d, axis=1)
-                    d *= np.minimum(1.0, 0.5 / np.maximum(big, 1e-12))[:, None]
-                if k in attach:  # follow the parent at the start, own shift after a few radii
-                    w = ramp[k][:, None]
-                    d = d * w + moved[attach[k]] * (1.0 - w)
-                moved[sl] = d
-            p += moved
+
+        def push_apart(widths: np.ndarray) -> tuple[np.ndarray, dict[int, set[int]]]:
+            """Rounds of pushes from the input centrelines, spread with Gaussians of these sigmas (mm)."""
+            p = p0.copy()
+            partners: dict[int, set[int]] = {k: set() for k in range(len(order))}
+            for _round in range(max_rounds):
+                i, j, gap = _contact_pairs(p, r, o, n, clearance_mm, linked, step, diverge=True)
+                if not len(i):
+                    break
+                for a_, b_ in set(zip(o[i].tolist(), o[j].tolist(), strict=True)):
+                    partners[a_].add(b_)
+                    partners[b_].add(a_)
+                v = p[i] - p[j]
+                normal = np.cross(t[i], t[j])
+                nn = np.linalg.norm(normal, axis=1)
+                # one side per pair of vessels (axes through each other leave v . normal ~ 0)
+                along = np.einsum("ij,ij->i", v, normal)
+                key = o[i] * len(order) + o[j]
+                keys, inv = np.unique(key, return_inverse=True)
+                side = np.sign(np.bincount(inv, along, len(keys)))[inv]
+                side[side == 0] = 1.0
+                across = v - np.einsum("ij,ij->i", v, t[i])[:, None] * t[i]
+                u = np.where((nn > 0.25)[:, None], normal * (side / np.maximum(nn, 1e-12))[:, None], across)
+                un = np.linalg.norm(u, axis=1)
+                weak = un < 1e-9
+                if np.any(weak):  # axes through each other and parallel: any direction across
+                    helper = np.where((np.abs(t[i][weak, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0],
+                                      [0.0, 1.0, 0.0])
+                    u[weak] = np.cross(t[i][weak], helper)
+                    un[weak] = np.linalg.norm(u[weak], axis=1)
+                u /= un[:, None]
+                need = clearance_mm - gap + 0.02
+                share_i = r[j] / (r[i] + r[j])
+                push = np.zeros_like(p)
+                count = np.zeros(len(p))
+                np.add.at(push, i, (share_i * need)[:, None] * u)
+                np.add.at(push, j, -((1.0 - share_i) * need)[:, None] * u)
+                np.add.at(count, i, 1.0)
+                np.add.at(count, j, 1.0)
+                push /= np.maximum(count, 1.0)[:, None]
+                moved = np.zeros_like(p)
+                for k in range(len(order)):
+                    sl = slice(first[k], first[k] + sizes[k])
+                    d = push[sl]
+                    peak = float(np.linalg.norm(d, axis=1).max())
+                    if peak > 0:
+                        sigma = widths[k] / step
+                        sm = ndimage.gaussian_filter1d(d, sigma, axis=0, mode="nearest")
+                        d = sm * min(peak / max(float(np.linalg.norm(sm, axis=1).max()), 1e-12), 5.0)
+                        big = np.linalg.norm(d, axis=1)
+                        d *= np.minimum(1.0, 0.5 / np.maximum(big, 1e-12))[:, None]
+                    if k in attach:  # follow the parent at the start, own shift after a few radii
+                        w = ramp[k][:, None]
+                        d = d * w + moved[attach[k]] * (1.0 - w)
+                    moved[sl] = d
+                p += moved
+            return p, partners
+
+        # A bump of height h spread with sigma bends the vessel with a radius of about sigma^2 / h:
+        # a first pass measures each vessel's shift, the second spreads it so the bend stays
+        # gentler than five radii (the solid would otherwise pinch the radius there).
+        mean_r = np.array([float(np.mean(x)) for x in rad])
+        widths = np.maximum(2.0 * mean_r, 1.0)
+        p, partners = push_apart(widths)
+        spans = [slice(first[k], first[k] + sizes[k]) for k in range(len(order))]
+        peak_shift = np.array([float(np.linalg.norm(p[sl] - p0[sl], axis=1).max()) for sl in spans])
+        wider = np.maximum(widths, np.sqrt(5.0 * mean_r * peak_shift))
+        if np.any(wider > widths + 1e-9):
+            p, partners = push_apart(wider)
         i, j, _gap = _contact_pairs(p, r, o, n, clearance_mm, linked, step, diverge=True)
         left = np.unique(o[np.r_[i, j]])
         out = []
