@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -45,7 +46,7 @@ from OCP.TopLoc import TopLoc_Location
 from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape, TopoDS_Solid
 from OCP.TopTools import TopTools_ListOfShape
 
-from ..errors import ArgumentError, GeometryError, OutputError
+from ..errors import ArgumentError, GeometryError, OutputError, VesselcadWarning
 from ..io.atomic import atomic_path
 
 __all__ = ["BranchPipe", "FaceTag", "VesselSolid", "fuse_pipes", "shape_volume", "shape_area",
@@ -244,6 +245,7 @@ class VesselSolid:
     specs: list[dict[str, Any]] = field(default_factory=list, repr=False)
     extensions: dict[tuple[int, str], float] = field(default_factory=dict)
     _meshed: tuple[float, float] | None = field(default=None, init=False, repr=False)
+    _triangles: Any = field(default=None, init=False, repr=False)
 
     # ------------------------------------------------------------ measures
     @property
@@ -424,11 +426,46 @@ class VesselSolid:
         key = (float(linear_deflection), float(angular_deflection))
         if self._meshed == key:  # STL and GLB of one solid share one triangulation
             return key[0]
-        # Drop any earlier triangulation: OCCT keeps an existing one if it is finer.
-        BRepTools.Clean_s(self.shape)
-        BRepMesh_IncrementalMesh(self.shape, key[0], False, key[1], True)
+        # OCCT's mesher now and then leaves a face's triangles unconnected to its
+        # neighbours at one particular deflection (a real-shaped tree: holes at
+        # 0.00483 mm, none at 0.0045 or 0.0049): check that every triangle edge
+        # is shared by exactly two triangles and retry a little finer (still
+        # within the asked deflection) before giving up with a warning.
+        for factor in (1.0, 0.93, 0.85, 0.75, 0.6):
+            # Drop any earlier triangulation: OCCT keeps an existing one if it is finer.
+            BRepTools.Clean_s(self.shape)
+            BRepMesh_IncrementalMesh(self.shape, key[0] * factor, False, key[1], True)
+            self._triangles = self._collect_triangles()
+            if _closed(*self._triangles[:2]):
+                break
+        else:
+            warnings.warn(f"OCCT's triangulation of the solid has holes at deflections {0.6 * key[0]:.3g}-"
+                          f"{key[0]:.3g} mm: the STL/GLB/trimesh will not be watertight (the B-rep is; "
+                          "try another tolerance)", VesselcadWarning, stacklevel=3)
         self._meshed = key
-        return key[0]
+        return key[0] * factor
+
+    def _collect_triangles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Nodes, triangles (outward), branch ids and role codes of the current triangulation."""
+        verts, tris, branch, role = [], [], [], []
+        offset = 0
+        codes = {"wall": 0, "inlet": 1, "outlet": 2, "cap": 3}
+        for face, tag in self.faces:
+            loc = TopLoc_Location()
+            tri = BRep_Tool.Triangulation_s(face, loc)
+            if tri is None:
+                raise GeometryError(f"to_trimesh: OCCT could not mesh a face of branch {tag.branch_id}")
+            trsf = loc.Transformation()
+            nodes = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, tri.NbNodes() + 1)])
+            t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
+            if face.Orientation() == TopAbs_REVERSED:
+                t = t[:, ::-1]
+            verts.append(nodes)
+            tris.append(t + offset)
+            branch.append(np.full(len(t), tag.branch_id))
+            role.append(np.full(len(t), codes[tag.role]))
+            offset += len(nodes)
+        return np.vstack(verts), np.vstack(tris), np.concatenate(branch), np.concatenate(role)
 
     def to_trimesh(self, tolerance: float | None = None, angular_deflection: float = 0.3) -> Any:
         """Triangulate the solid into a ``trimesh.Trimesh`` (vertices merged across faces).
@@ -452,26 +489,9 @@ class VesselSolid:
         import trimesh
 
         self._mesh(tolerance, angular_deflection)
-        verts, tris, branch, role = [], [], [], []
-        offset = 0
-        codes = {"wall": 0, "inlet": 1, "outlet": 2, "cap": 3}
-        for face, tag in self.faces:
-            loc = TopLoc_Location()
-            tri = BRep_Tool.Triangulation_s(face, loc)
-            if tri is None:
-                raise GeometryError(f"to_trimesh: OCCT could not mesh a face of branch {tag.branch_id}")
-            trsf = loc.Transformation()
-            nodes = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, tri.NbNodes() + 1)])
-            t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
-            if face.Orientation() == TopAbs_REVERSED:
-                t = t[:, ::-1]
-            verts.append(nodes)
-            tris.append(t + offset)
-            branch.append(np.full(len(t), tag.branch_id))
-            role.append(np.full(len(t), codes[tag.role]))
-            offset += len(nodes)
-        attrs = {"branch": np.concatenate(branch), "role": np.concatenate(role)}
-        mesh = trimesh.Trimesh(np.vstack(verts), np.vstack(tris), process=False, face_attributes=attrs)
+        verts, tris, branch, role = self._triangles
+        attrs = {"branch": branch.copy(), "role": role.copy()}
+        mesh = trimesh.Trimesh(verts.copy(), tris.copy(), process=False, face_attributes=attrs)
         # Faces share their edge discretisation, so equal nodes coincide to round-off.
         mesh.merge_vertices(digits_vertex=6)
         return mesh
@@ -552,6 +572,18 @@ class VesselSolid:
     def __repr__(self) -> str:
         return (f"VesselSolid(branches={len(self.branch_ids)}, faces={len(self.faces)}, "
                 f"failed={sorted(self.failed)}, volume={self.volume:.1f} mm^3)")
+
+
+def _closed(verts: np.ndarray, tris: np.ndarray) -> bool:
+    """Whether every edge of the triangles (nodes equal to 1e-6 mm merged) is shared by exactly two."""
+    if not len(tris):
+        return False
+    _u, ids = np.unique(np.round(verts, 6), axis=0, return_inverse=True)
+    t = ids.ravel()[tris]
+    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    _e, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
 
 
 def _extend(solid: VesselSolid, diameters: dict[str, float]) -> VesselSolid:
