@@ -480,6 +480,10 @@ class VesselSolid:
         angular_deflection : float
             Largest angle (rad) between the normals of neighbouring facets.
 
+        The triangulation is checked to be closed (every edge shared by two
+        triangles); where OCCT leaves holes it is redone at up to 0.6 times the
+        deflection, and a ``VesselcadWarning`` says so if none is closed.
+
         Returns
         -------
         trimesh.Trimesh
