@@ -470,3 +470,22 @@ def test_real_mask_tree_with_a_crossing_separates_into_a_watertight_mesh():
     mesh = solid.to_trimesh()
     assert mesh.is_watertight
     assert mesh.volume == pytest.approx(solid.volume, rel=0.01)
+
+
+def test_a_parent_that_ends_where_its_children_start_has_no_outlet_there():
+    # As skeleton graphs give it: the parent (r = 2) ends at z = 20, where both children
+    # (r = 1.4, +-40 deg) start. The tree has one inlet (z = 0) and two outlets, at the
+    # children's far ends; what is left of the parent's end disc is wall.
+    tree = _tree([
+        {"id": 0, "parent": None, "points": _line([0, 0, 0], [0, 0, 1], 20).tolist(), "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "points": _line([0, 0, 20], LEFT, 25).tolist(), "radius": [1.4] * 30},
+        {"id": 2, "parent": 0, "points": _line([0, 0, 20], RIGHT, 25).tolist(), "radius": [1.4] * 30},
+    ])
+    solid = tree.solid(merge=False)
+    assert solid.check()["watertight"]
+    caps = solid.caps()
+    assert [(c["role"], c["branch_id"]) for c in caps] == [("inlet", 0), ("outlet", 1), ("outlet", 2)]
+    np.testing.assert_allclose(caps[0]["centre"], [0, 0, 0], atol=1e-6)
+    for c, d in zip(caps[1:], (LEFT, RIGHT), strict=True):
+        np.testing.assert_allclose(c["centre"], np.array([0, 0, 20]) + 25 * d, atol=0.05)
+    assert any(t.branch_id == 0 and t.role == "cap" for _f, t in solid.faces)

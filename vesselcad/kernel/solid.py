@@ -742,10 +742,15 @@ def _free_extension_lengths(solid: VesselSolid, ends: dict[tuple[int, str], dict
 def _tag_faces(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
                root: int | None) -> list[tuple[TopoDS_Face, FaceTag]]:
     origin: dict[int, list[tuple[TopoDS_Shape, FaceTag]]] = {}
+    # A vessel whose children start at its end (a skeleton graph's parent ends at the
+    # junction; the children's lead-ins start within its radius of that end) has no
+    # outlet there: what is left of its end disc is wall.
+    forks = {p.branch_id for p in pipes for q in pipes
+             if q.parent == p.branch_id and np.linalg.norm(q.start - p.end) <= 1.5 * p.end_radius}
     for p in pipes:
         roles = [*((w, "wall") for w in p.walls),
                  (p.start_cap, "inlet" if p.branch_id == root else "cap"),
-                 (p.end_cap, "outlet")]
+                 (p.end_cap, "cap" if p.branch_id in forks else "outlet")]
         for f, role in roles:
             for img in history.images(f):
                 origin.setdefault(hash(img), []).append((img, FaceTag(p.branch_id, p.name, role)))
