@@ -570,9 +570,13 @@ class VesselTree:
         moving the two centrelines apart along their common normal until their
         walls are at least ``clearance_mm`` apart; the thinner vessel moves
         more (shares inverse to the radii). The shift is spread smoothly along
-        each vessel (Gaussian, sigma two radii, at least 1 mm), a child
-        follows its parent at its start and reaches its own shift over a few
-        radii, and the rounds repeat until no contact is left. Radii are not
+        each vessel (Gaussian, sigma two radii, at least 1 mm, and at least
+        sqrt(5 r h) for a shift of h mm so the vessel bends no tighter than
+        about five radii), a child follows its parent at its start and
+        reaches its own shift over a few radii, and the rounds repeat until
+        no contact is left. Siblings (or a vessel and its grandparent) that
+        leave one point fused are opened at least like a 23-degree split; a
+        child and its own parent are never pushed apart. Radii are not
         changed. Every moved branch gets a warning saying by how much and
         from which vessel.
 
@@ -614,6 +618,7 @@ class VesselTree:
             tan.append(d1 / np.linalg.norm(d1, axis=1, keepdims=True))
         sizes = np.array([len(s) for s in params])
         first = np.r_[0, np.cumsum(sizes)[:-1]]
+        spans = [slice(a, a + m) for a, m in zip(first, sizes, strict=True)]
         p0 = np.vstack(pts)
         r, t = np.concatenate(rad), np.vstack(tan)
         o = np.repeat(np.arange(len(order)), sizes)
@@ -674,8 +679,7 @@ class VesselTree:
                 np.add.at(count, j, 1.0)
                 push /= np.maximum(count, 1.0)[:, None]
                 moved = np.zeros_like(p)
-                for k in range(len(order)):
-                    sl = slice(first[k], first[k] + sizes[k])
+                for k, sl in enumerate(spans):
                     d = push[sl]
                     peak = float(np.linalg.norm(d, axis=1).max())
                     if peak > 0:
@@ -697,7 +701,6 @@ class VesselTree:
         mean_r = np.array([float(np.mean(x)) for x in rad])
         widths = np.maximum(2.0 * mean_r, 1.0)
         p, partners = push_apart(widths)
-        spans = [slice(first[k], first[k] + sizes[k]) for k in range(len(order))]
         peak_shift = np.array([float(np.linalg.norm(p[sl] - p0[sl], axis=1).max()) for sl in spans])
         wider = np.maximum(widths, np.sqrt(5.0 * mean_r * peak_shift))
         if np.any(wider > widths + 1e-9):
@@ -705,9 +708,8 @@ class VesselTree:
         i, j, _gap = _contact_pairs(p, r, o, n, clearance_mm, linked, step, diverge=True)
         left = np.unique(o[np.r_[i, j]])
         out = []
-        for k, bid in enumerate(order):
+        for k, (bid, sl) in enumerate(zip(order, spans, strict=True)):
             b = tree[bid]
-            sl = slice(first[k], first[k] + sizes[k])
             shift = np.linalg.norm(p[sl] - p0[sl], axis=1)
             if shift.max() < 1e-3:  # (a child following a parent that barely moved)
                 out.append(replace(b, warnings=list(b.warnings)))
