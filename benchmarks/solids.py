@@ -66,7 +66,7 @@ class Tube:
         spine, law = spec["spine"], spec["radius"]
         a, b = float(spine.t[3]), float(spine.t[-4])
         s = np.linspace(a, b, max(int((b - a) / step), 2) + 1)
-        return cls(spine(s), np.ravel(law(s)))
+        return cls(spine(s), np.ravel(law(s)), (True, spec.get("end") != "dome"))  # a dome is no end disc
 
     @classmethod
     def from_polyline(cls, points: np.ndarray, radius: np.ndarray, step: float = 0.02) -> Tube:
@@ -160,6 +160,62 @@ class Tube:
         return verts, np.vstack(faces)
 
 
+class Dome:
+    """The hemisphere closing a vessel whose children start at its end (``spec['end'] == 'dome'``)."""
+
+    def __init__(self, centre: np.ndarray, axis: np.ndarray, radius: float):
+        self.c = np.asarray(centre, float)
+        self.t = np.asarray(axis, float) / np.linalg.norm(axis)
+        self.r = float(radius)
+        ref = np.eye(3)[int(np.argmin(np.abs(self.t)))]
+        self.n = np.cross(self.t, ref) / np.linalg.norm(np.cross(self.t, ref))
+        self.b = np.cross(self.t, self.n)
+
+    @classmethod
+    def from_spec(cls, spec: dict) -> Dome:
+        spine, law = spec["spine"], spec["radius"]
+        e = float(spine.t[-4])
+        return cls(spine(e), spine.derivative()(e), float(np.ravel(law(e))[0]))
+
+    def sdf(self, p: np.ndarray) -> np.ndarray:
+        """Signed distance (negative inside) to the half ball; exact on and outside its round side."""
+        q = p - self.c
+        return np.maximum(np.linalg.norm(q, axis=1) - self.r, -(q @ self.t))
+
+    def _rings(self, n_polar: int, n_angle: int) -> np.ndarray:
+        theta = np.linspace(0.5 * np.pi, 0.0, n_polar + 1)[:-1]  # from the rim towards the pole
+        ang = np.linspace(0, 2 * np.pi, n_angle, endpoint=False)
+        radial = np.cos(ang)[:, None] * self.n + np.sin(ang)[:, None] * self.b
+        return (self.c + self.r * (np.cos(theta)[:, None, None] * self.t
+                                   + np.sin(theta)[:, None, None] * radial[None]))
+
+    def boundary_samples(self, step: float = 0.25, n_angle: int = 48) -> np.ndarray:
+        """Points on the round side."""
+        n_polar = max(int(0.5 * np.pi * self.r / step), 4)
+        return np.vstack([self._rings(n_polar, n_angle).reshape(-1, 3), self.c + self.r * self.t])
+
+    def mesh(self, n_polar: int = 32, n_seg: int = 128) -> tuple[np.ndarray, np.ndarray]:
+        """Closed triangle mesh of the half ball (rings of n-gons, pole, flat disc)."""
+        rings = self._rings(n_polar, n_seg)
+        m = len(rings)
+        verts = np.vstack([rings.reshape(-1, 3), self.c + self.r * self.t, self.c])
+        pole, centre = m * n_seg, m * n_seg + 1
+        j = np.arange(n_seg)
+        faces = []
+        for k in range(m - 1):
+            a0, a1 = k * n_seg + j, k * n_seg + (j + 1) % n_seg
+            faces += [np.c_[a0, a1, a1 + n_seg], np.c_[a0, a1 + n_seg, a0 + n_seg]]
+        last = (m - 1) * n_seg
+        faces.append(np.c_[last + j, last + (j + 1) % n_seg, np.full(n_seg, pole)])
+        faces.append(np.c_[np.full(n_seg, centre), (j + 1) % n_seg, j])
+        f = np.vstack(faces)
+        v = verts[f]
+        normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        if np.einsum("ij,ij->i", normal, v.mean(axis=1) - self.c).sum() < 0:
+            f = f[:, ::-1]  # outward
+        return verts, f
+
+
 def without_self_approach(tube: Tube) -> list[Tube]:
     """The tube as pieces that do not come near themselves (found here, independently of
     the code under test): where the axis comes back within the two radii + 1 mm at points
@@ -184,11 +240,11 @@ def without_self_approach(tube: Tube) -> list[Tube]:
                  (a == 0, b == len(tube.c) - 1)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def union_sdf(tubes: list[Tube], p: np.ndarray) -> np.ndarray:
+def union_sdf(tubes: list[Tube | Dome], p: np.ndarray) -> np.ndarray:
     return np.min(np.stack([t.sdf(p) for t in tubes]), axis=0)
 
 
-def reference_volume(tubes: list[Tube]) -> float:
+def reference_volume(tubes: list[Tube | Dome]) -> float:
     import manifold3d as mf
 
     parts = []
@@ -214,6 +270,8 @@ def measure(anatomy: str, seed: int, render_dir: Path | None = None) -> dict:
     chk = solid.check()
     tubes = [p for s in solid.specs if s["id"] not in solid.failed
              for p in without_self_approach(Tube.from_spec(s))]
+    tubes += [Dome.from_spec(s) for s in solid.specs
+              if s["id"] not in solid.failed and s.get("end") == "dome"]
     # B-rep -> analytic: tessellation nodes lie on the exact surface.
     fine = solid.to_trimesh(tolerance=FINE_TOL_MM, angular_deflection=0.15)
     d_fwd = np.abs(union_sdf(tubes, np.asarray(fine.vertices)))

@@ -489,3 +489,46 @@ def test_a_parent_that_ends_where_its_children_start_has_no_outlet_there():
     for c, d in zip(caps[1:], (LEFT, RIGHT), strict=True):
         np.testing.assert_allclose(c["centre"], np.array([0, 0, 20]) + 25 * d, atol=0.05)
     assert any(t.branch_id == 0 and t.role == "cap" for _f, t in solid.faces)
+    # ... and it is closed there with a hemisphere of its radius, not a disc that would
+    # leave knife-edge creases against the children's walls
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.GeomAbs import GeomAbs_Sphere
+
+    ends = [BRepAdaptor_Surface(f) for f, t in solid.faces if t.branch_id == 0 and t.role == "cap"]
+    assert ends and all(e.GetType() == GeomAbs_Sphere for e in ends)
+    for e in ends:
+        assert e.Sphere().Radius() == pytest.approx(2.0, abs=1e-6)
+        np.testing.assert_allclose(e.Sphere().Location().Coord(), [0, 0, 20], atol=1e-3)
+
+
+def test_a_domed_pipe_is_its_tube_plus_a_hemisphere():
+    # A straight pipe (r = 1.5, 10 mm) closed at its end with a dome: pi r^2 L + 2/3 pi r^3,
+    # one valid solid whose end face is the sphere of radius r around the end point, and a
+    # triangulation that closes over the sphere's pole (Euler characteristic 2).
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.GeomAbs import GeomAbs_Sphere
+    from scipy import interpolate
+
+    from vesselcad.kernel.pipes import branch_pipe
+    from vesselcad.kernel.solid import fuse_pipes
+
+    r, length = 1.5, 10.0
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    s = np.linspace(0.0, length, 11)
+    spine = interpolate.make_interp_spline(s, np.array([1.0, 2.0, 3.0]) + np.outer(s, axis), k=3)
+    law = interpolate.make_interp_spline(s, np.full(len(s), r), k=3)
+    solid = fuse_pipes([branch_pipe(0, "vessel", None, spine, law, end="dome")])
+    assert solid.check()["valid"] and solid.check()["watertight"]
+    assert solid.volume == pytest.approx(np.pi * r**2 * length + 2.0 / 3.0 * np.pi * r**3, rel=1e-6)
+    dome = [BRepAdaptor_Surface(f) for f, t in solid.faces if t.role == "cap"]
+    assert len(dome) == 1 and dome[0].GetType() == GeomAbs_Sphere
+    assert dome[0].Sphere().Radius() == pytest.approx(r, abs=1e-9)
+    np.testing.assert_allclose(dome[0].Sphere().Location().Coord(), spine(length), atol=1e-9)
+    assert [c["role"] for c in solid.caps()] == ["inlet"]  # a dome is no outlet
+    mesh = solid.to_trimesh()
+    assert mesh.is_watertight and mesh.euler_number == 2
+    assert mesh.volume == pytest.approx(solid.volume, rel=0.01)
+    tip = np.array([1.0, 2.0, 3.0]) + (length + r) * axis  # the pole lies on the surface
+    assert solid.distance(tip[None])[0] == pytest.approx(0.0, abs=1e-6)
+    with pytest.raises(vc.GeometryError, match="end"):
+        branch_pipe(0, "vessel", None, spine, law, end="round")

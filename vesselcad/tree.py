@@ -744,14 +744,16 @@ class VesselTree:
         Rebuilds (and merges) if needed, clamps the radius against curvature and
         at child starts, and moves a child's start onto its parent's centreline
         when it lies off it. Returns dicts ``{'id', 'name', 'parent', 'spine',
-        'radius', 'cuts', 'warnings'}``; ``cuts`` are the spine parameters (mm)
+        'radius', 'cuts', 'end', 'warnings'}``; ``cuts`` are the spine parameters (mm)
         where a pipe that would overlap itself is cut into pieces (empty for
-        almost every branch).
+        almost every branch); ``end`` is ``'dome'`` for a vessel whose children
+        start at its end (closed with a hemisphere there), else ``'flat'``.
         """
         tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
         if merge:
             tree = tree.merged(max_merge_angle_deg, tol_mm)
         specs = []
+        by_id: dict[int, dict[str, Any]] = {}
         swept: dict[int, TreeBranch] = {}  # each branch as its pipe is swept (parents come first)
         for bid in tree.order():
             b = tree[bid]
@@ -761,15 +763,21 @@ class VesselTree:
             r_parent = None
             if b.parent is not None:
                 # attach to the parent's pipe as swept (its radius clamped, its start moved)
-                spine, law, w, r_parent = _start_inside(b, swept[b.parent])
+                spine, law, w, r_parent, at_end = _start_inside(b, swept[b.parent])
                 warns += w
+                if at_end and by_id[b.parent]["end"] != "dome":
+                    # no disc at the parent's end to meet the children's walls at a knife-edge
+                    by_id[b.parent]["end"] = "dome"
+                    by_id[b.parent]["warnings"].append("its children start at its end: closed there "
+                                                       "with a hemisphere, not a disc")
             law, w = _clamp_radius(spine, law, r_parent)
             warns += w
             w, cuts = _self_approach(spine, law)
             warns += w
             swept[bid] = replace(b, spline=spine, radius_law=law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
-                          "radius": law, "cuts": cuts, "warnings": warns})
+                          "radius": law, "cuts": cuts, "end": "flat", "warnings": warns})
+            by_id[b.id] = specs[-1]
         return specs
 
     def solid(self, tol_mm: float = TOL_MM, merge: bool = True,
@@ -834,7 +842,7 @@ class VesselTree:
                 continue
             try:
                 pipes.append(branch_pipe(s["id"], s["name"], s["parent"], s["spine"], s["radius"],
-                                         station_step_mm, s.get("cuts", ())))
+                                         station_step_mm, s.get("cuts", ()), s.get("end", "flat")))
             except Exception as exc:  # one bad branch never loses the rest
                 failed[s["id"]] = f"pipe could not be built: {exc}"
         t2 = time.perf_counter()
@@ -909,9 +917,9 @@ def _merge_pair(p: TreeBranch, c: TreeBranch, tol_mm: float) -> TreeBranch:
 
 
 def _start_inside(b: TreeBranch, par: TreeBranch
-                  ) -> tuple[interpolate.BSpline, interpolate.BSpline, list[str], float]:
-    """Spine and radius law of a child that starts on its parent's centreline, and
-    the parent's radius there.
+                  ) -> tuple[interpolate.BSpline, interpolate.BSpline, list[str], float, bool]:
+    """Spine and radius law of a child that starts on its parent's centreline, the
+    parent's radius there, and whether the child starts at the parent's end.
 
     A start farther than ``MAX_START_GAP_RADII`` parent radii (and 2 mm) from the
     parent is left alone: such a branch is not attached, and the fusion reports it.
@@ -929,10 +937,10 @@ def _start_inside(b: TreeBranch, par: TreeBranch
     pa, pe = par.domain
     at_end = s_par > pe - r_par and pe - pa > 2.0 * r_par
     if gap <= 0.02 * r_par + 1e-6 and not at_end:
-        return b.spline, b.radius_law, [], r_par
+        return b.spline, b.radius_law, [], r_par, False
     if gap > max(MAX_START_GAP_RADII * r_par, 2.0):
         return (b.spline, b.radius_law, [f"starts {gap:.1f} mm from its parent's centreline: not attached"],
-                r_par)
+                r_par, False)
     a, e = b.domain
     s = np.linspace(a, e, max(int((e - a) / 0.25), 4) + 1)
     pts = b.spline(s)
@@ -959,7 +967,7 @@ def _start_inside(b: TreeBranch, par: TreeBranch
     rad = np.r_[np.full(len(lead), float(b.radius_at(join))), b.radius_at(s[keep])]
     spl, _ = fit_spine(new_pts, TOL_MM)
     law = fit_radius_law(_project_params(spl, new_pts), rad, float(spl.t[-4] - spl.t[3]))
-    return spl, law, [note], r_par
+    return spl, law, [note], r_par, at_end
 
 
 def _contact_pairs(p: np.ndarray, r: np.ndarray, o: np.ndarray, n: np.ndarray,

@@ -32,7 +32,7 @@ from OCP.BRep import BRep_Builder, BRep_Tool
 from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_MakeWire, BRepBuilderAPI_Sewing
 from OCP.BRepCheck import BRepCheck_Analyzer
 from OCP.Geom import Geom_BSplineSurface
-from OCP.gp import gp_Pnt
+from OCP.gp import gp_Ax3, gp_Dir, gp_Pnt, gp_Sphere
 from OCP.ShapeFix import ShapeFix_Solid
 from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array2OfReal
@@ -209,6 +209,36 @@ def tube_surface(spine: interpolate.BSpline, radius: interpolate.BSpline | np.nd
                                _int_array(vm), 2, 3)
 
 
+def dome_face(wall: Geom_BSplineSurface, centre: np.ndarray, tangent: np.ndarray, radius: float,
+              v: float | None = None) -> TopoDS_Face:
+    """A hemisphere that closes a tube wall at its end, as a face on an exact ``Geom_SphericalSurface``.
+
+    Its rim is the wall's end section (an exact circle of ``radius`` around
+    ``centre`` in the plane normal to ``tangent``) and its seam starts where the
+    wall's does, so the two sew into one shell; it meets the wall
+    tangent-continuously. (A rational B-spline hemisphere is as exact, but
+    OCCT's mesher leaves a hole at its collapsed pole row.)
+
+    Parameters
+    ----------
+    wall : Geom_BSplineSurface
+        A wall made by :func:`tube_surface`.
+    centre, tangent : (3,) arrays
+        The spine's end point and unit tangent there (pointing out of the tube).
+    radius : float
+        The section's radius (mm).
+    v : float, optional
+        The wall parameter of the section (default: the wall's last V).
+    """
+    _u0, _u1, _v0, v1 = wall.Bounds()
+    p = wall.Value(0.0, v1 if v is None else float(v))
+    seam = np.array([p.X(), p.Y(), p.Z()]) - np.asarray(centre, float)
+    t = np.asarray(tangent, float) / np.linalg.norm(tangent)
+    seam -= (seam @ t) * t
+    axes = gp_Ax3(gp_Pnt(*map(float, centre)), gp_Dir(*map(float, t)), gp_Dir(*map(float, seam)))
+    return BRepBuilderAPI_MakeFace(gp_Sphere(axes, float(radius)), 0.0, 2.0 * np.pi, 0.0, 0.5 * np.pi).Face()
+
+
 def _boundary_circles(face: TopoDS_Face) -> list:
     """The two closed V-boundary edges of a tube wall (the seam is skipped)."""
     out = []
@@ -234,9 +264,10 @@ def _oriented_solid(shell: TopoDS_Shell) -> TopoDS_Shape:
     return fix.Solid()
 
 
-def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None = None
+def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None = None,
+               end_dome: tuple[np.ndarray, np.ndarray, float] | None = None
                ) -> tuple[TopoDS_Solid, TopoDS_Face, TopoDS_Face, TopoDS_Face]:
-    """Close a tube wall with two planar caps.
+    """Close a tube wall with two planar caps (or a planar start and a dome at the end).
 
     Parameters
     ----------
@@ -244,6 +275,9 @@ def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None
         A wall made by :func:`tube_surface`.
     v_range : (float, float), optional
         Part of the wall to close (V = spine parameter); default all of it.
+    end_dome : (centre, tangent, radius), optional
+        Close the end with the hemisphere of :func:`dome_face` instead of
+        a disc (the spine's end point, its unit tangent and the end radius).
 
     Returns
     -------
@@ -273,13 +307,17 @@ def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None
         if not mk.IsDone():
             raise GeometryError("tube: the end section is not planar")
         caps.append(mk.Face())
-    shell = TopoDS_Shell()
-    builder = BRep_Builder()
-    builder.MakeShell(shell)
-    for f in (wall, *caps):
-        builder.Add(shell, f)
-    fixed = _oriented_solid(shell)
-    if not is_valid(fixed):
+    fixed = None
+    if end_dome is not None:
+        caps[1] = dome_face(surface, *end_dome, v=v1)
+    else:
+        shell = TopoDS_Shell()
+        builder = BRep_Builder()
+        builder.MakeShell(shell)
+        for f in (wall, *caps):
+            builder.Add(shell, f)
+        fixed = _oriented_solid(shell)
+    if fixed is None or not is_valid(fixed):
         # Fall back to sewing (re-creates shared edges within tolerance).
         sew = BRepBuilderAPI_Sewing(1e-5)
         for f in (wall, *caps):
@@ -291,12 +329,13 @@ def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None
         fixed = _oriented_solid(TopoDS.Shell_s(ex.Current()))
         if not is_valid(fixed):
             raise GeometryError("tube: the closed pipe is not a valid solid")
+        wall, *caps = (TopoDS.Face_s(sew.Modified(f)) for f in (wall, *caps))  # the faces as sewn
     return TopoDS.Solid_s(fixed), wall, caps[0], caps[1]
 
 
 def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolate.BSpline,
                 radius: interpolate.BSpline, station_step_mm: float = 2.0,
-                cuts: tuple[float, ...] | list[float] = ()) -> BranchPipe:
+                cuts: tuple[float, ...] | list[float] = (), end: str = "flat") -> BranchPipe:
     """The closed pipe of one branch (see :func:`tube_surface`) with its end data.
 
     Parameters
@@ -314,6 +353,10 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
         (``VesselTree.pipe_specs`` finds them): the pieces are trimmed from
         copies of one wall surface, so neighbours share their cut circle
         exactly, and are fused into the branch's solid.
+    end : {'flat', 'dome'}
+        How the pipe is closed at its end: a disc (an open end of the vessel:
+        an outlet), or a hemisphere (a vessel whose children start at its end:
+        no disc is left there to meet their walls at a knife-edge).
 
     Returns
     -------
@@ -321,6 +364,8 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
     """
     if not station_step_mm > 0:
         raise GeometryError(f"station_step_mm: expected a positive number, got {station_step_mm!r}")
+    if end not in ("flat", "dome"):
+        raise GeometryError(f"end: expected 'flat' or 'dome', got {end!r}")
     k = spine.k
     a, b = float(spine.t[k]), float(spine.t[-k - 1])
     cuts = sorted(float(c) for c in cuts)
@@ -328,21 +373,25 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
         raise GeometryError(f"branch {branch_id}: cuts {cuts} must lie inside the spine ({a:.3f}, {b:.3f})")
     surface = tube_surface(spine, radius, station_step_mm)
     d = spine.derivative()
+    r0, r1 = float(np.ravel(radius(a))[0]), float(np.ravel(radius(b))[0])
+    t1 = d(b) / np.linalg.norm(d(b))
+    dome = (spine(b), t1, r1) if end == "dome" else None
     if not cuts:
-        solid, wall, cap0, cap1 = tube_solid(surface)
+        solid, wall, cap0, cap1 = tube_solid(surface, end_dome=dome)
         walls: tuple[TopoDS_Face, ...] = (wall,)
         # Exact volume of a pipe with sections normal to its spine: integral of pi r^2 ds.
         u = np.linspace(a, b, max(int((b - a) / 0.1), 8) + 1)
         ds = np.linalg.norm(d(u), axis=1)
         area = np.pi * np.ravel(radius(u)) ** 2
         volume = float(np.sum(0.5 * (area[1:] * ds[1:] + area[:-1] * ds[:-1]) * np.diff(u)))
+        if dome is not None:
+            volume += 2.0 / 3.0 * np.pi * r1**3
     else:
-        solid, walls, cap0, cap1, volume = _pieces(surface, [a, *cuts, b], branch_id)
+        solid, walls, cap0, cap1, volume = _pieces(surface, [a, *cuts, b], branch_id, dome)
 
     def unit(v: np.ndarray) -> np.ndarray:
         return v / np.linalg.norm(v)
 
-    r0, r1 = float(np.ravel(radius(a))[0]), float(np.ravel(radius(b))[0])
     # probe points on the axis, clear of the start (inside the parent) and the end cap
     lo, hi = a + min(3.0 * r0, 0.5 * (b - a)), b - min(r1, 0.25 * (b - a))
     probes = spine(np.linspace(lo, hi, 3) if hi > lo else np.full(3, 0.5 * (a + b)))
@@ -350,16 +399,17 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
     # tightly bent start that the classification of the union could not be trusted)
     probes = probes[_inside(solid, probes)]
     return BranchPipe(branch_id, name, parent, solid, walls, cap0, cap1, spine(a), spine(b),
-                      unit(d(a)), unit(d(b)), r0, r1, volume, probes)
+                      unit(d(a)), unit(d(b)), r0, r1, volume, probes, end)
 
 
-def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int
+def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int,
+            end_dome: tuple[np.ndarray, np.ndarray, float] | None = None
             ) -> tuple[TopoDS_Solid, tuple[TopoDS_Face, ...], TopoDS_Face, TopoDS_Face, float]:
     """Union of the pieces of a tube wall between consecutive ``bounds``, with its
     wall faces, its two end caps and its volume."""
     # Each piece gets its own copy of the surface: OCCT takes faces on one surface
     # object for the same domain and would not intersect the pieces where they cross.
-    parts = [tube_solid(surface.Copy(), (v0, v1))
+    parts = [tube_solid(surface.Copy(), (v0, v1), end_dome if v1 == bounds[-1] else None)
              for v0, v1 in zip(bounds[:-1], bounds[1:], strict=True)]
     op = _general_fuse([p[0] for p in parts], FUZZY_MM, parallel=False)
     shape = op.Shape() if op is not None else None

@@ -87,6 +87,9 @@ class BranchPipe:
         parent the pipe starts in), the middle, one end radius before the end;
         only those OCCT classifies inside the pipe itself. A union that holds
         the pipe holds them; checked after fusing.
+    end_shape : str
+        ``'flat'`` (a disc closes the end) or ``'dome'`` (a hemisphere: the
+        vessel's children start at its end, so its end is no outlet).
     """
 
     branch_id: int
@@ -104,6 +107,7 @@ class BranchPipe:
     end_radius: float
     tube_volume_mm3: float
     probes: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    end_shape: str = "flat"
 
     @property
     def wall(self) -> TopoDS_Face:
@@ -465,7 +469,13 @@ class VesselSolid:
             branch.append(np.full(len(t), tag.branch_id))
             role.append(np.full(len(t), codes[tag.role]))
             offset += len(nodes)
-        return np.vstack(verts), np.vstack(tris), np.concatenate(branch), np.concatenate(role)
+        v, t, b, r = np.vstack(verts), np.vstack(tris), np.concatenate(branch), np.concatenate(role)
+        # A sphere's pole is a degenerated edge: OCCT puts two nodes there and a
+        # triangle between them; it has no area and no place in a closed mesh.
+        _u, ids = np.unique(np.round(v, 6), axis=0, return_inverse=True)
+        m = ids.ravel()[t]
+        keep = (m[:, 0] != m[:, 1]) & (m[:, 1] != m[:, 2]) & (m[:, 2] != m[:, 0])
+        return v, t[keep], b[keep], r[keep]
 
     def to_trimesh(self, tolerance: float | None = None, angular_deflection: float = 0.3) -> Any:
         """Triangulate the solid into a ``trimesh.Trimesh`` (vertices merged across faces).
@@ -747,6 +757,7 @@ def _tag_faces(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
     # outlet there: what is left of its end disc is wall.
     forks = {p.branch_id for p in pipes for q in pipes
              if q.parent == p.branch_id and np.linalg.norm(q.start - p.end) <= 1.5 * p.end_radius}
+    forks |= {p.branch_id for p in pipes if p.end_shape == "dome"}
     for p in pipes:
         roles = [*((w, "wall") for w in p.walls),
                  (p.start_cap, "inlet" if p.branch_id == root else "cap"),
