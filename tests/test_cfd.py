@@ -372,3 +372,80 @@ def test_touching_vessels_are_moved_apart_before_meshing():
     assert surf.is_watertight and surf.euler_number == 2
     kept = vc.cfd.load_solid(tree, separate_contacts=False)
     assert any("touch away from a junction" in w for w in kept.warnings)
+
+
+def test_crossing_triangles_finds_only_triangles_that_pass_through_each_other():
+    from vesselcad.cfd.quality import crossing_triangles
+
+    pts = np.array([
+        [0, 0, 0], [2, 0, 0], [0, 2, 0],          # 0: flat triangle in z = 0
+        [0.5, 0.5, -1], [0.6, 0.5, 1], [0.5, 0.6, 1],  # 1: its edge 3-4 pierces triangle 0 at (0.55, 0.5, 0)
+        [5, 5, 5], [6, 5, 5], [5, 6, 5],          # 2: far away
+        [2, 0, 0], [2, 2, 1], [3, 0, 1],          # 3: touches triangle 0 at a corner only (equal point)
+    ], float)
+    tris = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8], [1, 10, 11]])
+    i, j = crossing_triangles(pts, tris)
+    assert list(zip(i.tolist(), j.tolist(), strict=True)) == [(0, 1)]
+    # a closed octahedron does not cross itself, nor does a tetrahedron's surface
+    octa = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    assert len(crossing_triangles(octa, faces)[0]) == 0
+    # with a copy of itself shifted by half its size, each surface passes through the other
+    both = np.vstack([octa, octa + [0.5, 0.3, 0.1]])
+    i, j = crossing_triangles(both, np.vstack([faces, faces + 6]))
+    assert len(i) > 0 and np.all(i < 8) and np.all(j >= 8)
+    with pytest.raises(vc.ArgumentError, match="triangles"):
+        crossing_triangles(octa, np.array([[0, 1, 9]]))
+
+
+def _fork_at_end(angle_deg=70.0, r_child=1.2):
+    """Parent r = 1.5 along z to 20 mm; two children start at its very end at +-angle (skeleton style)."""
+    a = np.radians(angle_deg)
+    join = np.array([0.0, 0.0, 20.0])
+    return _tree([
+        {"id": 0, "parent": None, "points": _line([0, 0, 0], [0, 0, 1], 20).tolist(), "radius": [1.5] * 30},
+        {"id": 1, "parent": 0, "points": _line(join, [np.sin(a), 0, np.cos(a)], 15).tolist(),
+         "radius": [r_child] * 30},
+        {"id": 2, "parent": 0, "points": _line(join, [-np.sin(a), 0, np.cos(a)], 15).tolist(),
+         "radius": [r_child] * 30},
+    ])
+
+
+def test_prism_layers_at_a_fork_at_a_vessel_end():
+    # Skeleton graphs end a parent where its children start. Closed with a disc, that end
+    # left slivers against the children's walls where three prism layers crossed or folded
+    # (real-shaped trees: gmsh stopped with "a segment and a facet intersect"); the dome
+    # that closes it now meshes with no inverted element and a scaled Jacobian above 0.1.
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        m = vc.cfd.volume_mesh(_fork_at_end(), boundary_layers=3)
+    assert not [w for w in caught if "prism layers" in str(w.message) or "inverted" in str(w.message)]
+    for kind in ("wedge", "tetra"):
+        assert m.quality[kind]["inverted"] == 0
+        assert m.quality[kind]["scaled_jacobian_min"] > 0.1
+    assert [b.role for b in m.boundaries] == ["inlet", "outlet", "outlet"]
+
+
+def test_prism_layers_that_would_cross_are_thinned_there():
+    # The same fork closed with a flat disc (as before the domes): the layers' top surface
+    # would cross itself at the junction, which gmsh's tetrahedra cannot fill. The mesher
+    # finds the crossing triangles, thins the layers around them and meshes again, and
+    # says where it did so.
+    import re
+
+    from vesselcad.kernel.pipes import branch_pipe
+    from vesselcad.kernel.solid import fuse_pipes
+
+    specs = _fork_at_end().pipe_specs()
+    assert [s["end"] for s in specs] == ["dome", "flat", "flat"]
+    solid = fuse_pipes([branch_pipe(s["id"], s["name"], s["parent"], s["spine"], s["radius"])
+                        for s in specs])  # every end flat
+    solid.specs = specs
+    with pytest.warns(vc.VesselcadWarning, match="prism layers would cross"):
+        m = vc.cfd.volume_mesh(solid, boundary_layers=3)
+    note = next(w for w in m.warnings if "prism layers would cross" in w)
+    sites = np.array(re.findall(r"\(([-\d.]+), ([-\d.]+), ([-\d.]+)\) mm", note), float)
+    assert len(sites) and np.all(np.linalg.norm(sites - [0, 0, 20], axis=1) < 3.0)  # at the fork
+    assert m.quality["tetra"]["inverted"] == 0

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ArgumentError, InputFileError, MeshError, VesselcadWarning
-from .quality import NODES_PER_CELL, quality_report
+from .quality import NODES_PER_CELL, crossing_triangles, quality_report
 from .sizing import RadiusField
 
 __all__ = ["Boundary", "CFDMesh", "surface_mesh", "volume_mesh", "load_solid", "inverted_sites",
@@ -34,6 +34,9 @@ __all__ = ["Boundary", "CFDMesh", "surface_mesh", "volume_mesh", "load_solid", "
 #: files (physical volume 1 "fluid" in .msh), the wall 1, the inlet 2 and the
 #: outlets 3, 4, ... in branch order.
 FLUID_ID, WALL_ID, INLET_ID = 0, 1, 2
+
+#: Rounds of local thinning of the prism layers where they would cross (each to 35 %).
+MAX_LAYER_THINNING = 3
 
 _GMSH_TYPES = {2: "triangle", 3: "quad", 4: "tetra", 6: "wedge", 7: "pyramid"}
 
@@ -472,7 +475,7 @@ def _short_curves(gmsh: Any, field: RadiusField, edge_factor: float, min_size: f
     for _d, c in gmsh.model.getEntities(1):
         length = gmsh.model.occ.getMass(1, c)
         ends = [np.array(gmsh.model.getValue(0, v, [])) for v in gmsh.model.getAdjacencies(1, c)[1]]
-        if not ends:
+        if not ends or length <= 1e-9:  # a degenerated edge (a dome's pole) is no gap
             continue
         mid = np.mean(ends, axis=0)
         target = max(edge_factor * float(field(mid[None])[0]), min_size)
@@ -523,15 +526,17 @@ def _orient_outward(gmsh: Any, faces: dict[int, _Face], caps: list[dict[str, Any
             gmsh.model.mesh.reverse([(2, tag)])
 
 
-def _radius_view(gmsh: Any, walls: list[int], field: RadiusField) -> int:
-    """A list-based scalar view of the local radius on the wall triangles (scales the layers)."""
+def _radius_view(gmsh: Any, walls: list[int], field: RadiusField | None, thinning: _Thinning) -> int:
+    """A list-based scalar view on the wall triangles that scales the layers: the local
+    radius (1 with ``field=None``) times the thinning factor."""
     tags, xyz = _node_coords(gmsh)
     blocks = []
     for tag in walls:
         tri = _lookup(tags, _elements(gmsh, 2, tag)["triangle"][1])
         x = xyz[tri]
-        r = field(x.reshape(-1, 3)).reshape(-1, 3)
-        blocks.append(np.concatenate([x[:, :, 0], x[:, :, 1], x[:, :, 2], r], axis=1))
+        flat = x.reshape(-1, 3)
+        r = (field(flat) if field is not None else np.ones(len(flat))) * thinning(flat)
+        blocks.append(np.concatenate([x[:, :, 0], x[:, :, 1], x[:, :, 2], r.reshape(-1, 3)], axis=1))
     data = np.vstack(blocks)
     view = gmsh.view.add("vesselcad_radius")
     gmsh.view.addListData(view, "ST", len(data), data.ravel().tolist())
@@ -552,6 +557,65 @@ def _cap_of(points: np.ndarray, caps: list[dict[str, Any]], layer_mm: Callable[[
         if axial.max() <= 0.05 * c["radius"] + layer_mm(c["radius"]) and radial.max() <= 1.05 * c["radius"]:
             return i
     return None
+
+
+def _gmsh_mesh(solid: Any, caps: list[dict[str, Any]], field: RadiusField, *, volume: bool,
+               edge_factor: float, lo: float, hi: float, cap_segments: int, boundary_layers: int,
+               first_layer: float, first_layer_mm: float | None, growth: float, optimize: bool,
+               threads: int | None, verbose: bool, gmsh_options: dict[str, float] | None,
+               thinning: _Thinning, timings: dict[str, float], on_surface: Callable[[], None]) -> CFDMesh:
+    """One gmsh session: import the solid, mesh it, extract the result (raises
+    :class:`_LayersCross` where the prism layers would cross)."""
+    with _gmsh_session(verbose, threads or os.cpu_count() or 1) as gmsh, \
+            tempfile.TemporaryDirectory(prefix="vesselcad_mesh_") as tmp:
+        t1 = time.perf_counter()
+        brep = Path(tmp) / "tree.brep"
+        solid.export_brep(brep)
+        gmsh.model.occ.importShapes(str(brep))
+        gmsh.model.occ.synchronize()
+        faces = _match_faces(gmsh, solid, caps)
+        exact: dict[int, float] = {}
+        for f in faces.values():
+            if f.cap is not None:  # an end cut in two by another vessel has two faces
+                exact[f.cap] = exact.get(f.cap, 0.0) + f.area
+        overrides = {}
+        for face in faces.values():
+            if face.cap is None:
+                continue
+            rim = 2 * np.pi * caps[face.cap]["radius"] / cap_segments
+            for _d, curve in gmsh.model.getBoundary([(2, face.tag)], oriented=False):
+                overrides[(1, abs(curve))] = lambda s, rim=rim: min(s, rim)
+        for opt, val in (("Mesh.MeshSizeExtendFromBoundary", 0), ("Mesh.MeshSizeFromPoints", 0),
+                         ("Mesh.MeshSizeFromCurvature", 0), ("Mesh.Algorithm", 6),
+                         ("Mesh.Algorithm3D", 1), ("Mesh.Optimize", int(optimize)),
+                         ("Mesh.OptimizeNetgen", int(optimize))):
+            gmsh.option.setNumber(opt, val)
+        for opt, val in (gmsh_options or {}).items():
+            gmsh.option.setNumber(opt, val)
+        refine = _short_curves(gmsh, field, edge_factor, lo)
+        gmsh.model.mesh.setSizeCallback(field.size_callback(edge_factor, lo, hi, overrides, refine))
+        gmsh.model.mesh.generate(2)
+        _orient_outward(gmsh, faces, caps, field)
+        timings["surface"] = time.perf_counter() - t1
+        on_surface()
+        walls = [t for t, f in faces.items() if f.role == "wall"]
+        if volume:
+            t2 = time.perf_counter()
+            if boundary_layers > 0:
+                inner = _boundary_layers(gmsh, faces, walls, field, boundary_layers, first_layer,
+                                         first_layer_mm, growth, thinning)
+                gmsh.model.mesh.generate(2)  # the layers' side and top surfaces
+                crossing = _layer_crossings(gmsh, inner)
+                if len(crossing):
+                    raise _LayersCross(crossing)
+            gmsh.model.mesh.generate(3)
+            timings["volume"] = time.perf_counter() - t2
+        total = sum(growth**i for i in range(boundary_layers)) if volume else 0.0
+
+        def layer_mm(radius: float) -> float:
+            return total * (first_layer_mm if first_layer_mm is not None else first_layer * radius)
+
+        return _extract(gmsh, faces, caps, field, volume, exact, layer_mm)
 
 
 def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | None,
@@ -589,54 +653,25 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
     hi = max_size if max_size is not None else edge_factor * r_max * 2
     timings["solid"] = time.perf_counter() - t0
     step("solid")
+    thinning = _Thinning()
     try:
-        with _gmsh_session(verbose, threads or os.cpu_count() or 1) as gmsh, \
-                tempfile.TemporaryDirectory(prefix="vesselcad_mesh_") as tmp:
-            t1 = time.perf_counter()
-            brep = Path(tmp) / "tree.brep"
-            solid.export_brep(brep)
-            gmsh.model.occ.importShapes(str(brep))
-            gmsh.model.occ.synchronize()
-            faces = _match_faces(gmsh, solid, caps)
-            exact: dict[int, float] = {}
-            for f in faces.values():
-                if f.cap is not None:  # an end cut in two by another vessel has two faces
-                    exact[f.cap] = exact.get(f.cap, 0.0) + f.area
-            overrides = {}
-            for face in faces.values():
-                if face.cap is None:
-                    continue
-                rim = 2 * np.pi * caps[face.cap]["radius"] / cap_segments
-                for _d, curve in gmsh.model.getBoundary([(2, face.tag)], oriented=False):
-                    overrides[(1, abs(curve))] = lambda s, rim=rim: min(s, rim)
-            for opt, val in (("Mesh.MeshSizeExtendFromBoundary", 0), ("Mesh.MeshSizeFromPoints", 0),
-                             ("Mesh.MeshSizeFromCurvature", 0), ("Mesh.Algorithm", 6),
-                             ("Mesh.Algorithm3D", 1), ("Mesh.Optimize", int(optimize)),
-                             ("Mesh.OptimizeNetgen", int(optimize))):
-                gmsh.option.setNumber(opt, val)
-            for opt, val in (gmsh_options or {}).items():
-                gmsh.option.setNumber(opt, val)
-            refine = _short_curves(gmsh, field, edge_factor, lo)
-            gmsh.model.mesh.setSizeCallback(field.size_callback(edge_factor, lo, hi, overrides, refine))
-            gmsh.model.mesh.generate(2)
-            _orient_outward(gmsh, faces, caps, field)
-            timings["surface"] = time.perf_counter() - t1
-            step("surface mesh")
-            walls = [t for t, f in faces.items() if f.role == "wall"]
-            if volume:
-                t2 = time.perf_counter()
-                if boundary_layers > 0:
-                    _boundary_layers(gmsh, faces, walls, field, boundary_layers, first_layer, first_layer_mm,
-                                     growth)
-                gmsh.model.mesh.generate(3)
-                timings["volume"] = time.perf_counter() - t2
-                step("volume mesh")
-            total = sum(growth**i for i in range(boundary_layers)) if volume else 0.0
-
-            def layer_mm(radius: float) -> float:
-                return total * (first_layer_mm if first_layer_mm is not None else first_layer * radius)
-
-            mesh = _extract(gmsh, faces, caps, field, volume, exact, layer_mm)
+        for attempt in range(MAX_LAYER_THINNING + 1):
+            try:
+                first = attempt == 0
+                mesh = _gmsh_mesh(solid, caps, field, volume=volume, edge_factor=edge_factor, lo=lo, hi=hi,
+                                  cap_segments=cap_segments, boundary_layers=boundary_layers,
+                                  first_layer=first_layer, first_layer_mm=first_layer_mm, growth=growth,
+                                  optimize=optimize, threads=threads, verbose=verbose,
+                                  gmsh_options=gmsh_options, thinning=thinning, timings=timings,
+                                  on_surface=(lambda: step("surface mesh")) if first else (lambda: None))
+            except _LayersCross as crossing:
+                if attempt == MAX_LAYER_THINNING:
+                    raise MeshError(_crossing_message(crossing.points, field, thinning)) from None
+                thinning.add(crossing.points, field)
+                continue
+            break
+        if volume:
+            step("volume mesh")
     except MeshError:
         raise
     except Exception as exc:  # gmsh raises plain Exceptions with its last error message
@@ -656,6 +691,10 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
     mesh.timings_s = timings
     mesh.settings = settings
     mesh.warnings = list(solid.warnings) + [f"branch {b} left out: {why}" for b, why in solid.failed.items()]
+    if thinning.sites:
+        msg = _thinning_message(thinning, field, {p.branch_id: p.name for p in solid.pipes})
+        mesh.warnings.append(msg)
+        warnings.warn(msg, VesselcadWarning, stacklevel=3)
     for b in mesh.boundaries:
         full = np.pi * b.radius_mm**2
         if abs(b.exact_area_mm2 - full) > 0.05 * full:
@@ -758,10 +797,13 @@ def _check_args(edge_factor: float, min_size: float | None, max_size: float | No
 
 
 def _boundary_layers(gmsh: Any, faces: dict[int, _Face], walls: list[int], field: RadiusField, n: int,
-                     first: float, first_mm: float | None, growth: float) -> None:
-    """Prism layers extruded inward from the wall mesh; caps rebuilt as layer ribbons + inner discs."""
+                     first: float, first_mm: float | None, growth: float, thinning: _Thinning) -> int:
+    """Prism layers extruded inward from the wall mesh; caps rebuilt as layer ribbons + inner discs.
+
+    Returns the tag of the volume left for the tetrahedra (inside the layers)."""
     heights = np.cumsum(growth ** np.arange(n)) * (first_mm if first_mm is not None else first)
-    view = -1 if first_mm is not None else _radius_view(gmsh, walls, field)
+    view = (-1 if first_mm is not None and not thinning.sites
+            else _radius_view(gmsh, walls, field if first_mm is None else None, thinning))
     # The wall meshes point outward (_orient_outward): negative heights go into the vessel.
     ext = gmsh.model.geo.extrudeBoundaryLayer([(2, w) for w in walls], [1] * n, (-heights).tolist(),
                                               True, False, view)
@@ -771,7 +813,7 @@ def _boundary_layers(gmsh: Any, faces: dict[int, _Face], walls: list[int], field
     loops = gmsh.model.geo.addCurveLoops(rims)
     discs = [gmsh.model.geo.addPlaneSurface([loop]) for loop in loops]
     shell = gmsh.model.geo.addSurfaceLoop([t[1] for t in top] + discs)
-    gmsh.model.geo.addVolume([shell])
+    inner = gmsh.model.geo.addVolume([shell])
     gmsh.model.geo.synchronize()
     occ_volumes = [(3, t) for _d, t in gmsh.model.occ.getEntities(3)]
     caps = [(2, t) for t, f in faces.items() if f.role != "wall"]
@@ -781,6 +823,86 @@ def _boundary_layers(gmsh: Any, faces: dict[int, _Face], walls: list[int], field
     for tag in list(faces):
         if faces[tag].role != "wall":
             del faces[tag]
+    return inner
+
+
+def _layer_crossings(gmsh: Any, inner: int) -> np.ndarray:
+    """Where the surface that bounds the tetrahedra (the layers' top, the cap discs) crosses
+    itself: the centres of the crossing triangles (k, 3), empty when it does not."""
+    tags, xyz = _node_coords(gmsh)
+    tris = []
+    for _d, s in gmsh.model.getBoundary([(3, inner)], combined=True, oriented=False):
+        tri = _elements(gmsh, 2, abs(s)).get("triangle")
+        if tri is not None:
+            tris.append(_lookup(tags, tri[1]))
+    if not tris:
+        return np.zeros((0, 3))
+    t = np.vstack(tris)
+    i, j = crossing_triangles(xyz, t)
+    return xyz[t[np.r_[i, j]]].mean(axis=1)
+
+
+@dataclass
+class _Thinning:
+    """Where the prism layers are made thinner than asked, and by how much.
+
+    Each site thins the layers by its factor at its centre, blending back to
+    the full thickness over ``BLEND_RADII`` local radii (smoothstep)."""
+
+    BLEND_RADII = 2.0
+    STEP = 0.35  # each retry thins a crossing site to this share of what it had
+
+    sites: list[tuple[np.ndarray, float, float]] = field(default_factory=list)
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        out = np.ones(len(points))
+        for centre, radius, factor in self.sites:
+            s = np.clip(np.linalg.norm(points - centre, axis=1) / (self.BLEND_RADII * radius), 0.0, 1.0)
+            out = np.minimum(out, factor + (1.0 - factor) * s * s * (3.0 - 2.0 * s))
+        return out
+
+    def add(self, points: np.ndarray, field: RadiusField) -> list[tuple[np.ndarray, float, float]]:
+        """New sites at ``points`` (clustered one local radius apart); returns them."""
+        radius = field(points)
+        new: list[tuple[np.ndarray, float, float]] = []
+        for p, r in zip(points, radius, strict=True):
+            if any(np.linalg.norm(p - c) < rc for c, rc, _f in new):
+                continue
+            new.append((p, float(r), self.STEP * float(self(p[None])[0])))
+        self.sites.extend(new)
+        return new
+
+
+def _where(points: np.ndarray, field: RadiusField, names: dict[int, str] | None = None) -> str:
+    """'(x, y, z) mm next to branch b (name)' for each point."""
+    _r, branch, _axis = field.query(points)
+    out = []
+    for (x, y, z), b in zip(points, branch, strict=True):
+        name = f" ({names[int(b)]})" if names and int(b) in names else ""
+        out.append(f"({x:.1f}, {y:.1f}, {z:.1f}) mm next to branch {int(b)}{name}")
+    return "; ".join(out)
+
+
+def _thinning_message(thinning: _Thinning, field: RadiusField, names: dict[int, str]) -> str:
+    pts = np.array([c for c, _r, _f in thinning.sites])
+    least = min(f for _c, _r, f in thinning.sites)
+    return (f"the prism layers would cross where the wall folds onto itself; thinned there (down to "
+            f"{least:.0%} of the asked thickness, back to full within {_Thinning.BLEND_RADII:g} radii): "
+            + _where(pts, field, names))
+
+
+def _crossing_message(points: np.ndarray, field: RadiusField, thinning: _Thinning) -> str:
+    centre = points[np.argmin(np.linalg.norm(points - points.mean(axis=0), axis=1))][None]
+    least = min((f for _c, _r, f in thinning.sites), default=1.0)
+    return (f"the prism layers cross themselves near {_where(centre, field)} ({len(points)} triangles), "
+            f"even thinned to {least:.0%} of their thickness there; mesh with fewer or thinner layers "
+            "(boundary_layers, first_layer) or without them")
+
+
+class _LayersCross(Exception):  # noqa: N818 - internal signal, never leaves _mesh
+    def __init__(self, points: np.ndarray) -> None:
+        super().__init__(f"{len(points)} crossing triangles")
+        self.points = points
 
 
 def _extract(gmsh: Any, faces: dict[int, _Face], caps: list[dict[str, Any]], field: RadiusField,
