@@ -109,12 +109,14 @@ def test_solid_is_one_valid_watertight_tree(recon):
     chk = recon.solid.check()
     assert chk["valid"] and chk["watertight"]
     assert not recon.solid.failed
-    # Volume against the analytic vessels' cylinders. Measured 0.52 of it: junction overlaps, ends
-    # trimmed at junctions and radii from the skeleton's distance transform (biased low by about
-    # half a pixel) all make it smaller; an upper bound catches inflated radii.
+    # Volume against the analytic vessels' cylinders (sum of pi r^2 L, overlaps counted twice).
+    # Measured 1.15 of it (1.13 before vessels that end at a fork were closed with a hemisphere:
+    # + 2/3 pi r^3 each, less what the children cover): the pieces reconstructed between landmarks
+    # overlap at every junction and their lead-ins run inside the parent. The bounds catch lost
+    # pieces and inflated radii (radius error itself is checked above).
     vol = sum(np.pi * RADIUS_MM[n] ** 2 * np.linalg.norm(np.diff(bezier(c), axis=0), axis=1).sum()
               for n, (_, c) in TREE.items())
-    assert 0.45 * vol < recon.solid.volume < 1.15 * vol
+    assert 0.45 * vol < recon.solid.volume < 1.25 * vol
 
 
 def test_report_follows_the_contract(recon, tmp_path):

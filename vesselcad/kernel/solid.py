@@ -38,7 +38,6 @@ from OCP.ShapeFix import ShapeFix_Shape
 from OCP.ShapeUpgrade import ShapeUpgrade_UnifySameDomain
 from OCP.STEPConstruct import STEPConstruct
 from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
-from OCP.StlAPI import StlAPI_Writer
 from OCP.TCollection import TCollection_HAsciiString
 from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SOLID
 from OCP.TopExp import TopExp_Explorer
@@ -541,12 +540,15 @@ class VesselSolid:
 
         ``linear_deflection`` (mm) defaults to the smallest radius / 50; see :meth:`to_trimesh`.
         """
-        self._mesh(linear_deflection, angular_deflection)
-        writer = StlAPI_Writer()
-        writer.ASCIIMode = bool(ascii)
+        # From the checked triangulation (OCCT's own writer would also write the
+        # zero-area triangle at a dome's pole, which opens the mesh for readers).
+        mesh = self.to_trimesh(linear_deflection, angular_deflection)
+        data = mesh.export(file_type="stl_ascii" if ascii else "stl")
         with atomic_path(path) as tmp:
-            if not writer.Write(self.shape, str(tmp)):
-                raise OutputError(f"{path}: OCCT could not write the STL file")
+            if isinstance(data, str):
+                tmp.write_text(data)
+            else:
+                tmp.write_bytes(data)
 
     def export_glb(self, path: str | os.PathLike, tolerance: float | None = None) -> None:
         """Write a binary glTF (GLB) of the triangulated solid (trimesh), atomically."""
