@@ -861,8 +861,8 @@ class _Thinning:
             out = np.minimum(out, factor + (1.0 - factor) * s * s * (3.0 - 2.0 * s))
         return out
 
-    def add(self, points: np.ndarray, field: RadiusField) -> list[tuple[np.ndarray, float, float]]:
-        """New sites at ``points`` (clustered one local radius apart); returns them."""
+    def add(self, points: np.ndarray, field: RadiusField) -> None:
+        """New sites at ``points`` (clustered one local radius apart)."""
         radius = field(points)
         new: list[tuple[np.ndarray, float, float]] = []
         for p, r in zip(points, radius, strict=True):
@@ -870,7 +870,6 @@ class _Thinning:
                 continue
             new.append((p, float(r), self.STEP * float(self(p[None])[0])))
         self.sites.extend(new)
-        return new
 
 
 def _where(points: np.ndarray, field: RadiusField, names: dict[int, str] | None = None) -> str:

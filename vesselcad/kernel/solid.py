@@ -471,9 +471,8 @@ class VesselSolid:
         v, t, b, r = np.vstack(verts), np.vstack(tris), np.concatenate(branch), np.concatenate(role)
         # A sphere's pole is a degenerated edge: OCCT puts two nodes there and a
         # triangle between them; it has no area and no place in a closed mesh.
-        _u, ids = np.unique(np.round(v, 6), axis=0, return_inverse=True)
-        m = ids.ravel()[t]
-        keep = (m[:, 0] != m[:, 1]) & (m[:, 1] != m[:, 2]) & (m[:, 2] != m[:, 0])
+        c = np.round(v, 6)[t]
+        keep = ~((c[:, 0] == c[:, 1]).all(1) | (c[:, 1] == c[:, 2]).all(1) | (c[:, 2] == c[:, 0]).all(1))
         return v, t[keep], b[keep], r[keep]
 
     def to_trimesh(self, tolerance: float | None = None, angular_deflection: float = 0.3) -> Any:
