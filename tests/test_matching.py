@@ -207,3 +207,57 @@ def test_continuation_grows_a_seed_pair_through_both_trees(graphs):
         assert np.median(d) < 1.0, name
         # Pieces run proximal to distal along view A's branches.
         assert not p.reversed_a
+
+
+def test_foreshortening_factor_follows_the_length_ratio():
+    # A 40 mm straight segment: 1 while its 3D length is at most 1.2 x the longer 2D length (mm at
+    # the isocentre), exp(-((ratio - 1.2) / 0.2)^2) beyond.
+    from vesselcad.matching import foreshortening_factor
+
+    x = np.linspace(0.0, 40.0, 201)[:, None] * np.array([[0.6, 0.0, 0.8]])
+    mm = 0.25
+    assert foreshortening_factor(x, 40.0 / mm, 10.0 / mm, mm, mm) == pytest.approx(1.0)
+    assert foreshortening_factor(x, 40.0 / 1.2 / mm, 0.0, mm, mm) == pytest.approx(1.0)
+    for ratio in (1.3, 1.5, 2.0):
+        f = foreshortening_factor(x, 0.0, 40.0 / ratio / mm, mm, mm)
+        assert f == pytest.approx(np.exp(-(((ratio - 1.2) / 0.2) ** 2)), rel=1e-6)
+    # Depth jitter of +-0.4 mm from sample to sample (0.2 mm apart) adds no length: the 3D length
+    # is taken on chords about 8 px long, not on the samples.
+    jitter = x + 0.4 * (-1.0) ** np.arange(len(x))[:, None] * np.array([[0.8, 0.0, -0.6]])
+    assert foreshortening_factor(jitter, 40.0 / mm, 30.0 / mm, mm, mm) == pytest.approx(1.0)
+
+
+def test_pairings_that_zigzag_in_depth_are_not_taken():
+    # Coronary sinus phantoms seen at 0 and 30 degrees: many vessels share epipolar bands, and a
+    # wrong pairing reprojects as well as the right one. Without the foreshortening factor 46 %,
+    # 38 % and 53 % of the paired length of these three cases reconstructs more than 1.5 mm from
+    # the truth centreline (0.46 of it all; 0.23 with the factor); it must stay below 0.3.
+    import warnings
+
+    from scipy.spatial import cKDTree
+
+    from vesselcad.phantom import LABELS, generate_case
+    from vesselcad.splines import resample_by_arclength
+
+    on = off = 0.0
+    for seed in (1002, 1011, 1020):
+        case = generate_case(seed, "cs", n_frames=10, synchronized=True)
+        la, lb = case.run_a.labels, case.run_b.labels
+        i = int(np.argmax((la == LABELS["vessel"]).sum(axis=(1, 2))))
+        va, vb = case.run_a.view, case.run_b.view
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", vc.VesselcadWarning)
+            ga = vc.centreline_graph(la[i] == LABELS["vessel"], va, labels=la[i])
+            gb = vc.centreline_graph(lb[i] == LABELS["vessel"], vb, labels=lb[i])
+            m = vc.match_graphs(va, ga, vb, gb)
+            truth = cKDTree(np.vstack([resample_by_arclength(np.asarray(b["points"], float), 0.25)
+                                       for b in case.run_a.trees[i]["branches"] if len(b["points"]) > 1]))
+            for p in m.pairs:
+                try:
+                    c3 = vc.intersect_centrelines(va, p.points_a_px, vb, p.points_b_px, method="epipolar")
+                except vc.VesselcadError:
+                    continue
+                d, _ = truth.query(c3.sample_every(0.5))
+                off += float(np.sum(d > 1.5))
+                on += float(np.sum(d <= 1.5))
+    assert on > 0 and off / (on + off) < 0.3

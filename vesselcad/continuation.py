@@ -36,7 +36,15 @@ import numpy as np
 
 from .centreline2d import CentrelineGraph
 from .geometry import CArmView, triangulate
-from .matching import CAP_MM, CAP_PX, LENGTH_WEIGHT, RADIUS_SIGMA, STEP_PX
+from .matching import (
+    CAP_MM,
+    CAP_PX,
+    LENGTH_WEIGHT,
+    MIN_FORESHORTENING,
+    RADIUS_SIGMA,
+    STEP_PX,
+    foreshortening_factor,
+)
 from .matching import OPEN_TAU as TAU  # a continuation runs while the error stays below TAU * tol
 from .splines import arc_length
 
@@ -392,7 +400,10 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
                 agree = float(np.exp(-(np.log(max(ra, 1e-6) / max(rb, 1e-6)) / RADIUS_SIGMA) ** 2))
                 if agree < MIN_RADIUS_AGREEMENT:
                     continue
-                gain = min(la, lb) * (1.0 - cost / tol) * agree
+                fs = foreshortening_factor(se.X[se.map_a[ia], se.map_b[ib]], la, lb, mm_a, mm_b)
+                if fs < MIN_FORESHORTENING:
+                    continue
+                gain = min(la, lb) * (1.0 - cost / tol) * agree * fs
                 cands.append(Continuation(gain, cost, ia, ib, err, (ca, ta, cb, tb)))
         cands.sort(key=lambda c: -c.gain)
         queue = []

@@ -63,6 +63,15 @@ OPEN_TAU = 0.5
 RADIUS_SIGMA = 0.5
 #: Shortest open-ended pair (px along each view).
 MIN_OPEN_PX = 16.0
+#: A pair's 3D length over its longer 2D length (mm at the isocentre) up to which it is
+#: plausible without penalty: a vessel foreshortened this much in *both* views.
+FORESHORTENING_FREE = 1.2
+#: Width of the gain factor past ``FORESHORTENING_FREE`` (see :func:`foreshortening_factor`).
+FORESHORTENING_SIGMA = 0.2
+#: Pairs whose foreshortening factor is below this are dropped.
+MIN_FORESHORTENING = 0.1
+#: The 3D length of a pair is measured on chords this long (px), not on the noisy sample steps.
+CHORD_PX = 8.0
 
 
 @dataclass
@@ -313,11 +322,11 @@ def _errors(va: CArmView, vb: CArmView, pa: _Path, pb: _Path) -> tuple[np.ndarra
 
 def _compare(va: CArmView, vb: CArmView, pa: _Path, pb: _Path
              ) -> tuple[float, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Mean error along the best alignment, the triangulated sample pairs and the alignment."""
     E, X = _errors(va, vb, pa, pb)
-    D = _dtw(E, X)
-    pi, pj = backtrack(D)
+    pi, pj = backtrack(_dtw(E, X))
     # Mean reconstruction error along the path (the length term only chooses the path).
-    return float(np.mean(E[pi, pj])), D, (pi, pj)
+    return float(np.mean(E[pi, pj])), X, (pi, pj)
 
 
 def _check_graph(graph: Any, name: str) -> CentrelineGraph:
@@ -432,11 +441,14 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
             pb = pb.reversed()
         if pa.nodes[0] == pa.nodes[-1] or pb.nodes[0] == pb.nodes[-1]:
             continue
-        cost, D, path = _compare(view_a, view_b, pa, pb)
+        cost, X, path = _compare(view_a, view_b, pa, pb)
         if cost > branch_tol_px:
             continue
+        fs = foreshortening_factor(X[path], pa.length, pb.length, mm_a, mm_b)
+        if fs < MIN_FORESHORTENING:
+            continue
         extra = len(pa.edges) + len(pb.edges) - 2
-        gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra)
+        gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra) * fs
         cand = _Cand.closed(gain, cost, pa, pb, path)
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         cands.append(cand)
@@ -569,12 +581,48 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         cost = float(np.mean(E[pi, pj]))
         if cost > tol:
             continue
-        gain = min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * OPEN_FACTOR
+        fs = foreshortening_factor(X[pi, pj], pa.s[ie], pb.s[je], mm_a, mm_b)
+        if fs < MIN_FORESHORTENING:
+            continue
+        gain = min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * OPEN_FACTOR * fs
         cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])], [], [],
                      list(pa.edges), list(pb.edges))
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         out.append(cand)
     return out
+
+
+def foreshortening_factor(points_mm: np.ndarray, length_a_px: float, length_b_px: float,
+                          mm_a: float, mm_b: float) -> float:
+    """Plausibility (0..1] of a pairing from how much both views would foreshorten its 3D curve.
+
+    A projection never lengthens a curve, and a vessel is strongly
+    foreshortened in both views only when it runs nearly along both viewing
+    directions. A wrong pairing of two curves that share an epipolar band
+    reprojects perfectly but zig-zags in depth: its 3D curve is much longer
+    than either 2D curve. The factor is 1 while the 3D length (on chords of
+    about ``CHORD_PX``, so that pixel noise in depth adds no length) is at
+    most ``FORESHORTENING_FREE`` times the longer of the two 2D lengths (mm at
+    the isocentre), and falls as a Gaussian of width ``FORESHORTENING_SIGMA``
+    beyond.
+
+    Parameters
+    ----------
+    points_mm : numpy.ndarray, shape (n, 3)
+        Triangulated points along the pair, in order.
+    length_a_px, length_b_px : float
+        The pair's length in each view (px).
+    mm_a, mm_b : float
+        mm per px at the isocentre of each view.
+    """
+    longest = max(length_a_px * mm_a, length_b_px * mm_b)
+    if len(points_mm) < 2 or longest <= 0:
+        return 1.0
+    n_chords = max(int(np.ceil(max(length_a_px, length_b_px) / CHORD_PX)), 1)
+    idx = np.unique(np.round(np.linspace(0, len(points_mm) - 1, n_chords + 1)).astype(np.int64))
+    length_3d = float(np.sum(np.linalg.norm(np.diff(points_mm[idx], axis=0), axis=1)))
+    excess = max(length_3d / longest - FORESHORTENING_FREE, 0.0)
+    return float(np.exp(-(excess / FORESHORTENING_SIGMA) ** 2))
 
 
 def _radius_agreement(c: _Cand, mm_a: float, mm_b: float) -> float:
