@@ -20,6 +20,8 @@ with the phantom's 3D truth tree projected into both views:
   one branch pair (within 1 px plus the radius in each view);
 - topology: share of branch pairs between two correctly matched landmarks
   whose start is an ancestor of its end in the truth tree;
+- roots: share of views whose graph root lies within 3 px plus the radius of
+  the projected ostium;
 - 3D off truth: every branch pair turned into a 3D curve by the geometric
   core (``vc.intersect_centrelines``, epipolar method; not timed), the share
   of that 3D length farther than 1.5 mm from the truth centreline: what a
@@ -125,6 +127,7 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
                  "t_total_s": t2 - t0, "branches_a": len(ga.branches), "branches_b": len(gb.branches),
                  "crossings": len(ga.crossings) + len(gb.crossings), "tree": ga.is_tree() and gb.is_tree()}
     assoc = []
+    roots_ok = 0
     for g, v, (mask, _) in ((ga, va, masks[0]), (gb, vb, masks[1])):
         tp = v.project(T3)
         r_px = trad * v.sid_mm / v.depth(T3) / float(np.mean(v.pixel_spacing_mm))
@@ -136,11 +139,14 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
         visible = gap[ij[:, 1], ij[:, 0]] <= 2.0 + 0.5 * r_px
         a = associate(g.landmark_points, np.where(visible[:, None], tp, 1e9), 3.0 + r_px)
         assoc.append((a, visible))
+        if g.root is not None:  # truth landmark 0 is the ostium
+            roots_ok += bool(np.linalg.norm(g.landmarks[g.root].point_px - tp[0]) <= 3.0 + r_px[0])
     (aa, vis_a), (ab, vis_b) = assoc
     det_a = set(aa[aa >= 0].tolist())
     det_b = set(ab[ab >= 0].tolist())
     both = det_a & det_b
     correct = [lm for lm in m.landmark_pairs if aa[lm.a] >= 0 and aa[lm.a] == ab[lm.b]]
+    res["roots_ok"] = roots_ok
     res["truth_landmarks"] = int(np.sum(vis_a & vis_b))
     res["detected_a"] = len(det_a)
     res["detected_b"] = len(det_b)
@@ -229,6 +235,7 @@ def summarize(rows: list[dict]) -> list[dict]:
             / max(sum(r["truth_length_mm"] for r in rs), 1e-9),
             "topology": sum(r["topology_ok"] for r in rs) / max(sum(r["topology_pairs"] for r in rs), 1),
             "trees": sum(r["tree"] for r in rs) / len(rs),
+            "roots": sum(r.get("roots_ok", 0) for r in rs) / (2 * len(rs)),
             "off_3d": sum(r["pairs_3d_off_mm"] for r in rs)
             / max(sum(r["pairs_3d_off_mm"] + r["pairs_3d_on_mm"] for r in rs), 1e-9),
             "t_mean_s": float(t.mean()), "t_p95_s": float(np.percentile(t, 95)),
@@ -260,13 +267,14 @@ def main(argv: list[str] | None = None) -> int:
     for k in (tqdm(it, desc="cases", file=sys.stderr) if tqdm else it):
         rows.append(evaluate(args.seed + k, KINDS[k % 3], args.plot, not args.no_continuation))
     summ = summarize(rows)
-    print("| anatomy | cases | precision | recall | detected | paired length | topology | trees "
+    print("| anatomy | cases | precision | recall | detected | paired length | topology | trees | roots "
           "| 3D off truth | s/case (mean, p95) | graph s | match s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for s in summ:
         print(f"| {s['anatomy']} | {s['cases']} | {s['precision']:.3f} | {s['recall']:.3f} "
               f"| {s['detected']:.3f} "
               f"| {100 * s['paired_length']:.1f}% | {s['topology']:.3f} | {100 * s['trees']:.0f}% "
+              f"| {100 * s['roots']:.0f}% "
               f"| {100 * s['off_3d']:.1f}% "
               f"| {s['t_mean_s']:.3f}, {s['t_p95_s']:.3f} | {s['t_graph_s']:.3f} | {s['t_match_s']:.3f} |")
     if args.json:

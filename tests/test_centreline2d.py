@@ -184,3 +184,39 @@ def test_bad_input_names_the_argument():
         vc.centreline_graph(np.zeros((256, 256), bool), VIEW, labels=np.zeros((10, 10), np.uint8))
     with pytest.raises(vc.ArgumentError, match="noise_px"):
         vc.centreline_graph(np.zeros((256, 256), bool), VIEW, noise_px=-1.0)
+
+
+def test_root_at_a_catheter_tip_on_the_vessel_is_split_into_the_branch():
+    # The catheter ends on a vessel that runs on past the ostium (a side branch leaving it the
+    # other way, or the left main's two daughters in projection): no vessel end lies at the tip,
+    # so the root is a node put into the branch at the tip, with the two vessels as its branches.
+    labels = np.zeros((256, 256), np.uint8)
+    vessel = np.zeros((256, 256), bool)
+    draw_tube(vessel, (40, 150), (220, 150), 4.5)
+    labels[vessel] = 1
+    cath = np.zeros((256, 256), bool)
+    draw_tube(cath, (100, 0), (100, 144), 2.5)  # comes from above, tip at the vessel's wall
+    labels[cath] = 2
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
+    root = g.landmarks[g.root]
+    assert np.allclose(root.point_px, (100, 150), atol=3.0)
+    assert root.degree == 2 and len(g.branches) == 2
+    assert all(g.root == b.start for b in g.branches)  # both run from the ostium outward
+    ends = sorted(float(g.landmarks[b.end].point_px[0]) for b in g.branches)
+    assert ends[0] < 50 and ends[1] > 210
+
+
+def test_root_of_a_cannulated_vessel_is_where_the_catheter_enters():
+    # A coronary sinus catheter runs 60 px inside the vessel: its tip is on the skeleton, but the
+    # ostium is the vessel end where it enters (the vessel mask holds most of the catheter there).
+    labels = np.zeros((256, 256), np.uint8)
+    vessel = np.zeros((256, 256), bool)
+    draw_tube(vessel, (40, 128), (220, 128), 6.0)
+    labels[vessel] = 1
+    cath = np.zeros((256, 256), bool)
+    draw_tube(cath, (0, 60), (40, 128), 2.0)
+    draw_tube(cath, (40, 128), (100, 128), 2.0)
+    labels[cath] = 2
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
+    assert len(g.branches) == 1
+    assert np.allclose(g.landmarks[g.root].point_px, (40, 128), atol=8)

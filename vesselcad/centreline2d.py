@@ -49,6 +49,13 @@ CROSSING_RADII = 2.5
 CROSSING_MAX_BEND_DEG = 35.0
 #: Smallest angle (degrees) between two crossing vessels.
 CROSSING_MIN_ANGLE_DEG = 15.0
+#: The catheter tip is on the skeleton within a vessel radius plus this (px); a node this close
+#: along the skeleton to the tip's nearest point is used as the root rather than a new one.
+TIP_MARGIN_PX = 4.0
+#: A catheter whose pixels 6-24 px beyond a vessel radius from its tip lie inside the vessel
+#: mask for more than this share has cannulated the vessel (a coronary sinus catheter): the
+#: ostium is where it enters, not its tip.
+CANNULATED_SHARE = 0.5
 
 @dataclass
 class Landmark:
@@ -58,7 +65,8 @@ class Landmark:
     ----------
     index : int
     kind : {'end', 'branch'}
-        End point (one branch) or branch point (three or more).
+        End point (one branch) or branch point (three or more; two for a
+        root inside a branch, where the skeleton runs through the ostium).
     point_px : numpy.ndarray, shape (2,)
         ``(col, row)`` in pixels (the centroid of a junction's pixel cluster).
     radius_px : float
@@ -271,6 +279,7 @@ class _Work:
         self.crossings: list[tuple[np.ndarray, float]] = []
         self._next_node = 0
         self._next_edge = 0
+        self.root_hint: int | None = None  # a node chosen as root (the ostium inside a branch)
 
     def add_node(self, p: np.ndarray) -> int:
         k = self._next_node
@@ -332,6 +341,8 @@ class _Work:
         self.remove_edge(k1)
         self.remove_edge(k2)
         del self.nodes[n]
+        if self.root_hint == n:
+            self.root_hint = None
         self.add_edge(a, b, pts, cr)
 
 
@@ -686,7 +697,10 @@ def centreline_graph(
         3 balloon, 4 lead). Devices hide the vessels they lie over: a balloon
         touching the vessel is counted as vessel (it sits inside one), and
         catheter or lead pixels that close a gap in the vessel mask are too.
-        The vessel end nearest the catheter tip becomes the root (the ostium).
+        The root (the ostium) is found from the catheter tip: the vessel end
+        there, a node split into the branch where the skeleton runs through
+        the tip, or, for a catheter inside the vessel, the end where it
+        enters (docs/centreline2d.md).
     noise_px : float, optional
         Pixel noise of the skeleton for the B-spline smoothing; estimated per
         branch when omitted.
@@ -743,7 +757,13 @@ def centreline_graph(
         w.splice(n)
     # Root: the end point nearest the catheter, else the widest end of the longest component.
     tip = catheter_tip(cath, m) if cath is not None and cath.any() else None
-    root_of = _choose_roots(w, rmap, tip)
+    entry = None
+    if tip is not None:
+        if _cannulated(cath, m, rmap, tip):
+            entry = _edt(~cath)  # the ostium is where the catheter enters the vessel
+        else:
+            _root_at_tip(w, rmap, tip)  # where the skeleton runs through the ostium, a node there
+    root_of = _choose_roots(w, rmap, tip, entry)
     n_cut = 0
     for _ in range(50):  # splicing after a cut renumbers edges: repeat until no loop is left
         cut = _break_cycles(w, root_of)
@@ -752,7 +772,7 @@ def centreline_graph(
             break
     if n_cut:
         notes.append(f"{n_cut} loop(s) that are not crossings were cut open at the end farther from the root")
-        root_of = _choose_roots(w, rmap, tip)
+        root_of = _choose_roots(w, rmap, tip, entry)
     graph = _finish(w, rmap, view, root_of, skel, noise_px)
     graph.warnings.extend(notes)
     if n_spurs:
@@ -814,21 +834,94 @@ def catheter_tip(catheter: np.ndarray, near: np.ndarray | None = None) -> np.nda
     return pts[0]
 
 
-def _choose_roots(w: _Work, rmap: np.ndarray, tip: np.ndarray | None) -> dict[int, int]:
+def _cannulated(cath: np.ndarray, m: np.ndarray, rmap: np.ndarray, tip: np.ndarray) -> bool:
+    """Whether the catheter runs inside the vessel behind its tip (``CANNULATED_SHARE``)."""
+    rr, cc = np.nonzero(cath)
+    d = np.hypot(cc - tip[0], rr - tip[1])
+    r = float(_radius_at(rmap, np.asarray(tip, float)[None])[0])
+    ring = (d >= r + 6.0) & (d <= r + 24.0)
+    return bool(ring.any() and np.mean(m[rr[ring], cc[ring]]) > CANNULATED_SHARE)
+
+
+def _root_at_tip(w: _Work, rmap: np.ndarray, tip: np.ndarray) -> int | None:
+    """The node at the catheter tip where the skeleton runs through the ostium, split in if needed.
+
+    In a projection the ostium is often not a vessel end: a side branch (or
+    the left main's two daughters) leaves it in the other direction, and the
+    skeleton runs on through it. When the skeleton passes within a vessel
+    radius (plus ``TIP_MARGIN_PX``) of the tip and no end point lies within
+    about the same distance plus a radius (a skeleton stops about a radius
+    short of a vessel's end), the branch is split at its point nearest the
+    tip, or an existing node there is used. None otherwise.
+    """
+    if not w.edges:
+        return None
+    keys = list(w.edges)
+    pts = [w.edges[k][2] for k in keys]
+    flat = np.concatenate(pts)
+    owner = np.repeat(np.arange(len(keys)), [len(p) for p in pts])
+    at = np.concatenate([np.arange(len(p)) for p in pts])
+    d = np.linalg.norm(flat - tip, axis=1)
+    q = int(np.argmin(d))
+    r = float(_radius_at(rmap, flat[q][None])[0])
+    if d[q] > r + TIP_MARGIN_PX:
+        return None  # the tip is not on the vessel
+    ends = [n for n in w.nodes if w.degree(n) == 1]
+    if ends and min(float(np.linalg.norm(w.nodes[n] - tip)) for n in ends) <= d[q] + r + TIP_MARGIN_PX:
+        return None  # an end lies at the tip: the usual root
+    k, j = keys[owner[q]], int(at[q])
+    u, v, line = w.edges[k]
+    if _length(line[: j + 1]) <= TIP_MARGIN_PX:
+        w.root_hint = u
+        return u
+    if _length(line[j:]) <= TIP_MARGIN_PX:
+        w.root_hint = v
+        return v
+    crs = w.crossing_of[k]
+    w.remove_edge(k)
+    n = w.add_node(line[j])
+    halves = (line[: j + 1], line[j:])
+    side = [int(np.argmin([np.min(np.linalg.norm(h - w.crossings[c][0], axis=1)) for h in halves]))
+            for c in crs]
+    w.add_edge(u, n, halves[0], [c for c, sd in zip(crs, side, strict=True) if sd == 0])
+    w.add_edge(n, v, halves[1], [c for c, sd in zip(crs, side, strict=True) if sd == 1])
+    w.root_hint = n
+    return n
+
+
+def _choose_roots(w: _Work, rmap: np.ndarray, tip: np.ndarray | None,
+                  entry: np.ndarray | None = None) -> dict[int, int]:
     """Root node per connected component (key: smallest node id of the component).
 
     The end point nearest the catheter tip (within a few vessel widths) is the
-    root of its component; elsewhere the widest end point (the ostium is the
-    widest end of a coronary tree, and of the coronary sinus).
+    root of its component, or, where the skeleton runs through the ostium, the
+    node put there by :func:`_root_at_tip` (``w.root_hint``). In a vessel the
+    catheter has cannulated, ``entry`` (distance map to the catheter's pixels)
+    picks the end the catheter passes through instead. Elsewhere the widest
+    end point (the ostium is the widest end of a coronary tree, and of the
+    coronary sinus).
     """
     g = w.to_nx()
     roots: dict[int, int] = {}
     for comp in nx.connected_components(g):
+        if w.root_hint is not None and w.root_hint in comp:
+            roots[min(comp)] = w.root_hint
+            continue
         ends = [n for n in comp if g.degree(n) == 1] or list(comp)
         pts = np.array([w.nodes[n] for n in ends])
         r = _radius_at(rmap, pts)
         if tip is not None:
             d = np.linalg.norm(pts - tip, axis=1)
+            if entry is not None:
+                # Of the ends the catheter passes through (within a vessel radius), the one
+                # nearest its tip.
+                ij = np.round(pts).astype(np.int64)
+                on = entry[np.clip(ij[:, 1], 0, entry.shape[0] - 1),
+                           np.clip(ij[:, 0], 0, entry.shape[1] - 1)] <= r + TIP_MARGIN_PX
+                if on.any():
+                    k = int(np.flatnonzero(on)[np.argmin(d[on])])
+                    roots[min(comp)] = ends[k]
+                    continue
             k = int(np.argmin(d))
             if d[k] <= 40.0:
                 roots[min(comp)] = ends[k]

@@ -416,8 +416,18 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     rb_px = np.array([lm.radius_px for lm in gb.landmarks])
     kind_a = np.array([lm.kind for lm in ga.landmarks])
     kind_b = np.array([lm.kind for lm in gb.landmarks])
+    # A root is the tree's start (the ostium) whatever its degree: where the skeleton runs on
+    # through the ostium (a side branch leaving it the other way) it has two branches.
+    for kinds, g in ((kind_a, ga), (kind_b, gb)):
+        if g.root is not None:
+            kinds[g.root] = "end"
     ok_lm = (lm_err <= landmark_tol_px + 0.5 * (ra_px[:, None] + rb_px[None, :]))
     ok_lm &= kind_a[:, None] == kind_b[None, :]
+    # Two roots that agree are the ostium in both views: neither pairs with anything else.
+    if ga.root is not None and gb.root is not None and ok_lm[ga.root, gb.root]:
+        ok_lm[ga.root, :] = False
+        ok_lm[:, gb.root] = False
+        ok_lm[ga.root, gb.root] = True
 
     arcs_a = [arc_length(b.points_px) for b in ga.branches]
     arcs_b = [arc_length(b.points_px) for b in gb.branches]
