@@ -275,6 +275,8 @@ def _enumerate_paths(graph: CentrelineGraph, arcs: list[np.ndarray], max_edges: 
                     out.append(_chain(graph, arcs, list(nodes), list(edges), list(rev)))
             if len(edges) >= max_edges:
                 continue
+            if edges and nodes[-1] == graph.root:
+                continue  # no vessel runs on through the ostium: the branches at a root all start there
             for k, v, r in inc[nodes[-1]]:
                 if k in edges or v in nodes:
                     continue
