@@ -14,8 +14,10 @@ two DICOM files, read back and reconstructed, with all outputs written
 Metrics (ARCHITECTURE.md): 3D centreline error (reconstructed samples every
 0.5 mm to the true centreline of run A's tree at the chosen frame; mean and
 p95), reprojection error (mean over both views, px and mm), coverage (share
-of the true tree's length within 1 mm of the reconstruction), valid and
-watertight solid, wall time per case and per stage.
+of the true tree's length within 1 mm of the reconstruction), ostium (the
+two views' matched roots, triangulated, to the true ostium: median, and
+cases within 3 mm), valid and watertight solid, wall time per case and per
+stage.
 
 Run ``python benchmarks/end_to_end.py --cases 12`` (``--json FILE`` for raw numbers,
 ``--variants truth,model`` to choose).
@@ -74,9 +76,9 @@ def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path) -
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| variant | cases | 3D mean mm | 3D p95 mm | reproj px | reproj mm | coverage "
+    out = ["| variant | cases | 3D mean mm | 3D p95 mm | reproj px | reproj mm | coverage | ostium mm "
            "| solid valid+watertight | refined | s/case (mean, max) | " + " | ".join(STAGES) + " |",
-           "|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(STAGES)]
+           "|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(STAGES)]
     for variant in dict.fromkeys(r["variant"] for r in rows):
         rs = [r for r in rows if r["variant"] == variant]
         ok = [r for r in rs if r["status"] == "ok"]
@@ -88,13 +90,16 @@ def table(rows: list[dict]) -> str:
         rpx = np.mean([r["reprojection"].get("mean_px", np.nan) for r in ok])
         rmm = np.mean([r["reprojection"].get("mean_mm", np.nan) for r in ok])
         cov = np.mean([r["truth"]["coverage"] for r in ok])
+        ost = np.array([r["truth"].get("ostium_mm", np.nan) for r in ok], float)
+        ost_s = (f"{np.nanmedian(ost):.2f} ({np.sum(ost <= 3.0)}/{len(ok)} ≤ 3)" if np.isfinite(ost).any()
+                 else "-")
         solid = sum(r["solid_ok"] for r in ok)
         ref = sum(r["refined"] for r in ok)
         secs = [r["seconds"] for r in rs]
         st = " | ".join(f"{np.mean([r['timings'].get(s, 0.0) for r in ok]):.2f}" for s in STAGES)
         out.append(f"| {variant} | {len(rs)} ({len(rs) - len(ok)} failed) | {mean3:.3f} | {p953:.3f} | "
-                   f"{rpx:.3f} | "
-                   f"{rmm:.3f} | {cov:.1%} | {solid}/{len(rs)} | {ref}/{len(ok)} | {np.mean(secs):.1f}, "
+                   f"{rpx:.3f} | {rmm:.3f} | {cov:.1%} | {ost_s} | {solid}/{len(rs)} | {ref}/{len(ok)} | "
+                   f"{np.mean(secs):.1f}, "
                    f"{np.max(secs):.1f} | {st} |")
     return "\n".join(out)
 
@@ -119,6 +124,7 @@ def main() -> None:
                 t = r.get("truth", {})
                 print(f"seed {seed} {kind} {n_frames} frames {v}: {r['status'][:80]}; 3D mean "
                       f"{t.get('mean_mm', float('nan')):.3f} mm, coverage {t.get('coverage', 0):.1%}, "
+                      f"ostium {t.get('ostium_mm', float('nan')):.2f} mm, "
                       f"{r['seconds']:.1f} s", file=sys.stderr, flush=True)
     print(f"# end to end: {args.cases} phantom cases x {len(variants)} variants, 512², unsynchronized "
           f"40-60 frames")

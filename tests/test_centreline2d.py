@@ -220,3 +220,18 @@ def test_root_of_a_cannulated_vessel_is_where_the_catheter_enters():
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
     assert len(g.branches) == 1
     assert np.allclose(g.landmarks[g.root].point_px, (40, 128), atol=8)
+
+
+def test_root_is_the_end_nearest_a_catheter_that_the_contrast_has_not_reached():
+    # The proximal vessel next to the catheter tip is not (yet) filled: the vessel starts 80 px
+    # from the tip. Its end there is the root, although the far end is wider.
+    labels = np.zeros((256, 256), np.uint8)
+    vessel = np.zeros((256, 256), bool)
+    draw_tube(vessel, (100, 128), (200, 128), 3.0)
+    draw_tube(vessel, (200, 128), (230, 128), 6.0)
+    labels[vessel] = 1
+    cath = np.zeros((256, 256), bool)
+    draw_tube(cath, (20, 0), (20, 128), 2.5)
+    labels[cath] = 2
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
+    assert np.allclose(g.landmarks[g.root].point_px, (100, 128), atol=6)

@@ -56,6 +56,9 @@ TIP_MARGIN_PX = 4.0
 #: mask for more than this share has cannulated the vessel (a coronary sinus catheter): the
 #: ostium is where it enters, not its tip.
 CANNULATED_SHARE = 0.5
+#: The vessel end nearest the catheter tip is the root when it lies within this (px); the
+#: proximal vessel is often not yet (or no longer) filled with contrast next to the tip.
+TIP_REACH_PX = 120.0
 
 @dataclass
 class Landmark:
@@ -923,7 +926,7 @@ def _choose_roots(w: _Work, rmap: np.ndarray, tip: np.ndarray | None,
                     roots[min(comp)] = ends[k]
                     continue
             k = int(np.argmin(d))
-            if d[k] <= 40.0:
+            if d[k] <= TIP_REACH_PX:
                 roots[min(comp)] = ends[k]
                 continue
         roots[min(comp)] = ends[int(np.argmax(r))]

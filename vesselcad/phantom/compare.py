@@ -26,7 +26,8 @@ def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: flo
     dict
         ``mean_mm``, ``p95_mm``, ``max_mm``, ``coverage``, ``truth_length_mm``,
         ``phase_difference`` (true cardiac and respiratory difference of the pair,
-        in cycles).
+        in cycles), ``ostium_mm`` (distance of the matched roots of the two views,
+        triangulated, from the true ostium; NaN when the roots were not paired).
     """
     fa, fb = rec.phase.frame_a, rec.phase.frame_b
     truth = case.run_a.trees[fa]
@@ -37,6 +38,12 @@ def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: flo
     out: dict[str, Any] = {"truth_length_mm": round(float(step_mm * (len(tpts) - len(truth["branches"]))), 2),
                            "phase_difference": {"cardiac": round(float(d[0]), 4),
                                                 "respiratory": round(float(d[1]), 4)}}
+    # The ostium: the matched root landmarks of the two views, triangulated.
+    root = next((m for m in getattr(rec.match, "landmark_pairs", [])
+                 if rec.match.roots[0] is not None and (m.a, m.b) == tuple(rec.match.roots)), None)
+    ostium = np.asarray(truth["branches"][0]["points"][0], float)
+    out["ostium_mm"] = (float("nan") if root is None
+                        else round(float(np.linalg.norm(np.asarray(root.point_mm) - ostium)), 4))
     ok = [b for b in rec.branches if b.ok]
     if not ok:
         return {**out, "mean_mm": float("nan"), "p95_mm": float("nan"), "max_mm": float("nan"),
