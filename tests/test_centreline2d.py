@@ -23,6 +23,17 @@ def draw_tube(mask: np.ndarray, p, q, r: float) -> np.ndarray:
     return mask
 
 
+def scene(vessels, catheters) -> np.ndarray:
+    """Class image (1 vessel, 2 catheter drawn over it) of ``(p, q, r)`` tubes."""
+    labels = np.zeros((256, 256), np.uint8)
+    for kind, tubes in ((1, vessels), (2, catheters)):
+        m = np.zeros((256, 256), bool)
+        for p, q, r in tubes:
+            draw_tube(m, p, q, r)
+        labels[m] = kind
+    return labels
+
+
 def interior_radius(branch: vc.Branch2D, margin: float) -> float:
     """Median radius (px) away from the branch's ends."""
     s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(branch.points_px, axis=0), axis=1))]
@@ -143,14 +154,9 @@ def test_tree_with_15_branches():
 
 
 def test_catheter_gap_is_bridged_and_catheter_tip_is_the_root():
-    labels = np.zeros((256, 256), np.uint8)
-    vessel = np.zeros((256, 256), bool)
-    draw_tube(vessel, (40, 128), (220, 128), 3.5)
-    labels[vessel] = 1
-    cath = np.zeros((256, 256), bool)
-    draw_tube(cath, (120, 0), (120, 250), 3.0)  # lies across the vessel: a gap in the vessel class
-    draw_tube(cath, (40, 40), (40, 122), 3.0)  # its tip touches the left vessel end
-    labels[cath] = 2
+    labels = scene([((40, 128), (220, 128), 3.5)],
+                   [((120, 0), (120, 250), 3.0),  # lies across the vessel: a gap in the vessel class
+                    ((40, 40), (40, 122), 3.0)])  # its tip touches the left vessel end
     g0 = vc.centreline_graph(labels == 1, VIEW)
     assert len(g0.branches) == 2  # cut in two without the device classes
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
@@ -190,13 +196,8 @@ def test_root_at_a_catheter_tip_on_the_vessel_is_split_into_the_branch():
     # The catheter ends on a vessel that runs on past the ostium (a side branch leaving it the
     # other way, or the left main's two daughters in projection): no vessel end lies at the tip,
     # so the root is a node put into the branch at the tip, with the two vessels as its branches.
-    labels = np.zeros((256, 256), np.uint8)
-    vessel = np.zeros((256, 256), bool)
-    draw_tube(vessel, (40, 150), (220, 150), 4.5)
-    labels[vessel] = 1
-    cath = np.zeros((256, 256), bool)
-    draw_tube(cath, (100, 0), (100, 144), 2.5)  # comes from above, tip at the vessel's wall
-    labels[cath] = 2
+    labels = scene([((40, 150), (220, 150), 4.5)],
+                   [((100, 0), (100, 144), 2.5)])  # comes from above, tip at the vessel's wall
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
     root = g.landmarks[g.root]
     assert np.allclose(root.point_px, (100, 150), atol=3.0)
@@ -209,14 +210,8 @@ def test_root_at_a_catheter_tip_on_the_vessel_is_split_into_the_branch():
 def test_root_of_a_cannulated_vessel_is_where_the_catheter_enters():
     # A coronary sinus catheter runs 60 px inside the vessel: its tip is on the skeleton, but the
     # ostium is the vessel end where it enters (the vessel mask holds most of the catheter there).
-    labels = np.zeros((256, 256), np.uint8)
-    vessel = np.zeros((256, 256), bool)
-    draw_tube(vessel, (40, 128), (220, 128), 6.0)
-    labels[vessel] = 1
-    cath = np.zeros((256, 256), bool)
-    draw_tube(cath, (0, 60), (40, 128), 2.0)
-    draw_tube(cath, (40, 128), (100, 128), 2.0)
-    labels[cath] = 2
+    labels = scene([((40, 128), (220, 128), 6.0)],
+                   [((0, 60), (40, 128), 2.0), ((40, 128), (100, 128), 2.0)])
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
     assert len(g.branches) == 1
     assert np.allclose(g.landmarks[g.root].point_px, (40, 128), atol=8)
@@ -225,13 +220,7 @@ def test_root_of_a_cannulated_vessel_is_where_the_catheter_enters():
 def test_root_is_the_end_nearest_a_catheter_that_the_contrast_has_not_reached():
     # The proximal vessel next to the catheter tip is not (yet) filled: the vessel starts 80 px
     # from the tip. Its end there is the root, although the far end is wider.
-    labels = np.zeros((256, 256), np.uint8)
-    vessel = np.zeros((256, 256), bool)
-    draw_tube(vessel, (100, 128), (200, 128), 3.0)
-    draw_tube(vessel, (200, 128), (230, 128), 6.0)
-    labels[vessel] = 1
-    cath = np.zeros((256, 256), bool)
-    draw_tube(cath, (20, 0), (20, 128), 2.5)
-    labels[cath] = 2
+    labels = scene([((100, 128), (200, 128), 3.0), ((200, 128), (230, 128), 6.0)],
+                   [((20, 0), (20, 128), 2.5)])
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
     assert np.allclose(g.landmarks[g.root].point_px, (100, 128), atol=6)

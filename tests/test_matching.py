@@ -266,19 +266,13 @@ def test_pairings_that_zigzag_in_depth_are_not_taken():
 def test_no_chain_runs_on_through_a_root():
     # Where the skeleton runs through the ostium the root has two branches, two vessels that both
     # start there: a chain of branches (one vessel seen as several) never passes through it.
-    from test_centreline2d import VIEW, draw_tube
+    from test_centreline2d import VIEW, scene
 
     from vesselcad.matching import _enumerate_paths
     from vesselcad.splines import arc_length
 
-    labels = np.zeros((256, 256), np.uint8)
-    vessel = np.zeros((256, 256), bool)
-    draw_tube(vessel, (40, 150), (220, 150), 4.5)
-    draw_tube(vessel, (180, 150), (200, 230), 3.0)  # a side branch farther on
-    labels[vessel] = 1
-    cath = np.zeros((256, 256), bool)
-    draw_tube(cath, (100, 0), (100, 144), 2.5)
-    labels[cath] = 2
+    labels = scene([((40, 150), (220, 150), 4.5), ((180, 150), (200, 230), 3.0)],  # + a side branch
+                   [((100, 0), (100, 144), 2.5)])
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
     assert g.landmarks[g.root].degree == 2
     paths = _enumerate_paths(g, [arc_length(b.points_px) for b in g.branches], 3)
