@@ -212,19 +212,19 @@ def test_continuation_grows_a_seed_pair_through_both_trees(graphs):
 def test_foreshortening_factor_follows_the_length_ratio():
     # A 40 mm straight segment: 1 while its 3D length is at most 1.2 x the longer 2D length (mm at
     # the isocentre), exp(-((ratio - 1.2) / 0.2)^2) beyond.
-    from vesselcad.matching import foreshortening_factor
+    from vesselcad.matching import _foreshortening_factor
 
     x = np.linspace(0.0, 40.0, 201)[:, None] * np.array([[0.6, 0.0, 0.8]])
     mm = 0.25
-    assert foreshortening_factor(x, 40.0 / mm, 10.0 / mm, mm, mm) == pytest.approx(1.0)
-    assert foreshortening_factor(x, 40.0 / 1.2 / mm, 0.0, mm, mm) == pytest.approx(1.0)
+    assert _foreshortening_factor(x, 40.0 / mm, 10.0 / mm, mm, mm) == pytest.approx(1.0)
+    assert _foreshortening_factor(x, 40.0 / 1.2 / mm, 0.0, mm, mm) == pytest.approx(1.0)
     for ratio in (1.3, 1.5, 2.0):
-        f = foreshortening_factor(x, 0.0, 40.0 / ratio / mm, mm, mm)
+        f = _foreshortening_factor(x, 0.0, 40.0 / ratio / mm, mm, mm)
         assert f == pytest.approx(np.exp(-(((ratio - 1.2) / 0.2) ** 2)), rel=1e-6)
     # Depth jitter of +-0.4 mm from sample to sample (0.2 mm apart) adds no length: the 3D length
     # is taken on chords about 8 px long, not on the samples.
     jitter = x + 0.4 * (-1.0) ** np.arange(len(x))[:, None] * np.array([[0.8, 0.0, -0.6]])
-    assert foreshortening_factor(jitter, 40.0 / mm, 30.0 / mm, mm, mm) == pytest.approx(1.0)
+    assert _foreshortening_factor(jitter, 40.0 / mm, 30.0 / mm, mm, mm) == pytest.approx(1.0)
 
 
 def test_pairings_that_zigzag_in_depth_are_not_taken():

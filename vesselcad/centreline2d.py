@@ -765,7 +765,7 @@ def centreline_graph(
         if _cannulated(cath, m, rmap, tip):
             entry = _edt(~cath)  # the ostium is where the catheter enters the vessel
         else:
-            _root_at_tip(w, rmap, tip)  # where the skeleton runs through the ostium, a node there
+            w.root_hint = _root_at_tip(w, rmap, tip)  # the skeleton runs through the ostium: a node there
     root_of = _choose_roots(w, rmap, tip, entry)
     n_cut = 0
     for _ in range(50):  # splicing after a cut renumbers edges: repeat until no loop is left
@@ -875,10 +875,8 @@ def _root_at_tip(w: _Work, rmap: np.ndarray, tip: np.ndarray) -> int | None:
     k, j = keys[owner[q]], int(at[q])
     u, v, line = w.edges[k]
     if _length(line[: j + 1]) <= TIP_MARGIN_PX:
-        w.root_hint = u
         return u
     if _length(line[j:]) <= TIP_MARGIN_PX:
-        w.root_hint = v
         return v
     crs = w.crossing_of[k]
     w.remove_edge(k)
@@ -888,7 +886,6 @@ def _root_at_tip(w: _Work, rmap: np.ndarray, tip: np.ndarray) -> int | None:
             for c in crs]
     w.add_edge(u, n, halves[0], [c for c, sd in zip(crs, side, strict=True) if sd == 0])
     w.add_edge(n, v, halves[1], [c for c, sd in zip(crs, side, strict=True) if sd == 1])
-    w.root_hint = n
     return n
 
 
@@ -898,7 +895,7 @@ def _choose_roots(w: _Work, rmap: np.ndarray, tip: np.ndarray | None,
 
     The end point nearest the catheter tip (within a few vessel widths) is the
     root of its component, or, where the skeleton runs through the ostium, the
-    node put there by :func:`_root_at_tip` (``w.root_hint``). In a vessel the
+    node :func:`_root_at_tip` found or put there (``w.root_hint``). In a vessel the
     catheter has cannulated, ``entry`` (distance map to the catheter's pixels)
     picks the end the catheter passes through instead. Elsewhere the widest
     end point (the ostium is the widest end of a coronary tree, and of the

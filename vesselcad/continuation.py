@@ -43,7 +43,7 @@ from .matching import (
     MIN_FORESHORTENING,
     RADIUS_SIGMA,
     STEP_PX,
-    foreshortening_factor,
+    _foreshortening_factor,
 )
 from .matching import OPEN_TAU as TAU  # a continuation runs while the error stays below TAU * tol
 from .splines import arc_length
@@ -400,7 +400,7 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
                 agree = float(np.exp(-(np.log(max(ra, 1e-6) / max(rb, 1e-6)) / RADIUS_SIGMA) ** 2))
                 if agree < MIN_RADIUS_AGREEMENT:
                     continue
-                fs = foreshortening_factor(se.X[se.map_a[ia], se.map_b[ib]], la, lb, mm_a, mm_b)
+                fs = _foreshortening_factor(se.X[se.map_a[ia], se.map_b[ib]], la, lb, mm_a, mm_b)
                 if fs < MIN_FORESHORTENING:
                     continue
                 gain = min(la, lb) * (1.0 - cost / tol) * agree * fs

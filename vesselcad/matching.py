@@ -66,7 +66,7 @@ MIN_OPEN_PX = 16.0
 #: A pair's 3D length over its longer 2D length (mm at the isocentre) up to which it is
 #: plausible without penalty: a vessel foreshortened this much in *both* views.
 FORESHORTENING_FREE = 1.2
-#: Width of the gain factor past ``FORESHORTENING_FREE`` (see :func:`foreshortening_factor`).
+#: Width of the gain factor past ``FORESHORTENING_FREE`` (see :func:`_foreshortening_factor`).
 FORESHORTENING_SIGMA = 0.2
 #: Pairs whose foreshortening factor is below this are dropped.
 MIN_FORESHORTENING = 0.1
@@ -456,7 +456,7 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         cost, X, path = _compare(view_a, view_b, pa, pb)
         if cost > branch_tol_px:
             continue
-        fs = foreshortening_factor(X[path], pa.length, pb.length, mm_a, mm_b)
+        fs = _foreshortening_factor(X[path], pa.length, pb.length, mm_a, mm_b)
         if fs < MIN_FORESHORTENING:
             continue
         extra = len(pa.edges) + len(pb.edges) - 2
@@ -593,7 +593,7 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         cost = float(np.mean(E[pi, pj]))
         if cost > tol:
             continue
-        fs = foreshortening_factor(X[pi, pj], pa.s[ie], pb.s[je], mm_a, mm_b)
+        fs = _foreshortening_factor(X[pi, pj], pa.s[ie], pb.s[je], mm_a, mm_b)
         if fs < MIN_FORESHORTENING:
             continue
         gain = min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * OPEN_FACTOR * fs
@@ -604,7 +604,7 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
     return out
 
 
-def foreshortening_factor(points_mm: np.ndarray, length_a_px: float, length_b_px: float,
+def _foreshortening_factor(points_mm: np.ndarray, length_a_px: float, length_b_px: float,
                           mm_a: float, mm_b: float) -> float:
     """Plausibility (0..1] of a pairing from how much both views would foreshorten its 3D curve.
 

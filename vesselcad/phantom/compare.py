@@ -39,8 +39,8 @@ def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: flo
                            "phase_difference": {"cardiac": round(float(d[0]), 4),
                                                 "respiratory": round(float(d[1]), 4)}}
     # The ostium: the matched root landmarks of the two views, triangulated.
-    root = next((m for m in getattr(rec.match, "landmark_pairs", [])
-                 if rec.match.roots[0] is not None and (m.a, m.b) == tuple(rec.match.roots)), None)
+    roots = tuple(rec.match.roots)
+    root = next((m for m in rec.match.landmark_pairs if (m.a, m.b) == roots), None)
     ostium = np.asarray(truth["branches"][0]["points"][0], float)
     out["ostium_mm"] = (float("nan") if root is None
                         else round(float(np.linalg.norm(np.asarray(root.point_mm) - ostium)), 4))
