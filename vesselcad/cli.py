@@ -216,7 +216,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", VesselcadWarning)
         common = {"edge_factor": args.edge_factor, "flow_extensions": ext, "progress": not args.quiet,
-                  "separate_contacts": not args.keep_contacts}
+                  "separate_contacts": not args.keep_contacts, "crease_radius": args.crease_radius}
         if args.surface_only:
             mesh = cfd.surface_mesh(args.source, **common).metadata["cfd_mesh"]
         else:
@@ -363,6 +363,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="do not move apart vessels that touch away from a junction (they are by default, "
                          "by the least needed for 0.2 mm between their walls; the moves are listed in the "
                          "warnings)")
+    me.add_argument("--crease-radius", type=float, default=0.1, metavar="F",
+                    help="round junction creases sharper than 45 degrees (a vessel leaving its parent at a "
+                         "shallow angle) with a fillet of F times the vessel radius; 0 keeps them (0.1)")
     me.add_argument("--msh-version", type=float, choices=[2.2, 4.1], default=4.1,
                     help="gmsh file version; 2.2 for OpenFOAM's gmshToFoam (4.1)")
     me.add_argument("--png", metavar="FILE", help="also draw the labelled surface into a PNG")

@@ -37,6 +37,11 @@ FLUID_ID, WALL_ID, INLET_ID = 0, 1, 2
 
 #: Rounds of local thinning of the prism layers where they would cross (each to 35 %).
 MAX_LAYER_THINNING = 3
+#: Junction creases whose tissue wedge gets sharper than this (deg) are rounded before meshing
+#: (:meth:`VesselSolid.round_creases`) ...
+CREASE_ANGLE_DEG = 45.0
+#: ... by a fillet of this share of the thinner vessel's radius (the default of ``crease_radius``).
+CREASE_RADIUS = 0.1
 
 _GMSH_TYPES = {2: "triangle", 3: "quad", 4: "tetra", 6: "wedge", 7: "pyramid"}
 
@@ -291,7 +296,7 @@ def _cell_volumes(points: np.ndarray, c: np.ndarray, kind: str) -> np.ndarray:
 
 # ---------------------------------------------------------------- input
 def load_solid(source: Any, flow_extensions: float | Sequence[float] = 0.0,
-               separate_contacts: bool = True) -> Any:
+               separate_contacts: bool = True, crease_radius: float = CREASE_RADIUS) -> Any:
     """The :class:`~vesselcad.kernel.VesselSolid` to mesh, from whatever the user has.
 
     Parameters
@@ -310,6 +315,12 @@ def load_solid(source: Any, flow_extensions: float | Sequence[float] = 0.0,
         and no knife-edge crease that folds the boundary layers. A moved branch
         is named in the warnings with how far it moved. A solid is meshed as
         it is.
+    crease_radius : float
+        Round the knife-edge junction creases (where a vessel leaves its parent
+        so shallowly that the walls meet at less than ``CREASE_ANGLE_DEG``) with
+        a fillet of this share of the thinner vessel's radius
+        (:meth:`VesselSolid.round_creases`): boundary-layer prisms cannot follow
+        a knife-edge. 0 keeps the creases. Applies to solids as well.
     """
     from ..kernel.solid import VesselSolid
     from ..tree import VesselTree
@@ -341,6 +352,8 @@ def load_solid(source: Any, flow_extensions: float | Sequence[float] = 0.0,
     if solid.failed:
         msg = f"branches left out of the solid: {sorted(solid.failed)}"
         warnings.warn(msg, VesselcadWarning, stacklevel=3)
+    if crease_radius > 0:
+        solid = solid.round_creases(CREASE_ANGLE_DEG, crease_radius)
     if inlet > 0 or outlet > 0:
         solid = solid.with_flow_extensions(inlet=inlet, outlet=outlet)
     return solid
@@ -622,13 +635,17 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
           max_size: float | None, flow_extensions: float | Sequence[float], cap_segments: int,
           boundary_layers: int, first_layer: float, first_layer_mm: float | None, growth: float,
           optimize: bool, threads: int | None, verbose: bool, progress: bool,
-          gmsh_options: dict[str, float] | None = None, separate_contacts: bool = True) -> CFDMesh:
+          gmsh_options: dict[str, float] | None = None, separate_contacts: bool = True,
+          crease_radius: float = CREASE_RADIUS) -> CFDMesh:
     settings = {"edge_factor": edge_factor, "min_size": min_size, "max_size": max_size,
                 "flow_extensions": flow_extensions if isinstance(flow_extensions, int | float)
                 else list(flow_extensions), "cap_segments": cap_segments,
                 "boundary_layers": boundary_layers, "first_layer": first_layer,
                 "first_layer_mm": first_layer_mm, "growth": growth, "optimize": optimize,
-                "separate_contacts": bool(separate_contacts)}
+                "separate_contacts": bool(separate_contacts), "crease_radius": crease_radius}
+    if not (isinstance(crease_radius, int | float) and 0 <= crease_radius < 1):
+        raise ArgumentError("crease_radius: expected a share of the vessel radius in [0, 1), "
+                            f"got {crease_radius!r}")
     _check_args(edge_factor, min_size, max_size, cap_segments, boundary_layers, first_layer, first_layer_mm,
                 growth)
     stages = ["solid", "surface mesh"] + (["volume mesh"] if volume else []) + ["quality"]
@@ -645,7 +662,7 @@ def _mesh(source: Any, *, volume: bool, edge_factor: float, min_size: float | No
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    solid = load_solid(source, flow_extensions, separate_contacts)
+    solid = load_solid(source, flow_extensions, separate_contacts, crease_radius)
     caps = solid.caps()
     field = RadiusField.from_solid(solid)
     r_min, r_max = float(field.radius.min()), float(field.radius.max())
@@ -986,7 +1003,7 @@ def surface_mesh(source: Any, edge_factor: float = 0.3, flow_extensions: float |
                  min_size: float | None = None, max_size: float | None = None, cap_segments: int = 32,
                  optimize: bool = True, threads: int | None = None, verbose: bool = False,
                  progress: bool = False, gmsh_options: dict[str, float] | None = None,
-                 separate_contacts: bool = True) -> Any:
+                 separate_contacts: bool = True, crease_radius: float = CREASE_RADIUS) -> Any:
     """A closed, labelled triangle surface of a vessel tree for CFD.
 
     Parameters
@@ -1018,6 +1035,9 @@ def surface_mesh(source: Any, edge_factor: float = 0.3, flow_extensions: float |
     separate_contacts : bool
         Move vessels that touch away from a junction apart first (trees only;
         see :func:`load_solid`).
+    crease_radius : float
+        Round knife-edge junction creases with fillets of this share of the
+        vessel radius first (0: keep them; see :func:`load_solid`).
 
     Returns
     -------
@@ -1038,7 +1058,7 @@ def surface_mesh(source: Any, edge_factor: float = 0.3, flow_extensions: float |
                  flow_extensions=flow_extensions, cap_segments=cap_segments, boundary_layers=0,
                  first_layer=0.02, first_layer_mm=None, growth=1.2, optimize=optimize, threads=threads,
                  verbose=verbose, progress=progress, gmsh_options=gmsh_options,
-                 separate_contacts=separate_contacts)
+                 separate_contacts=separate_contacts, crease_radius=crease_radius)
     tm = mesh.surface()
     tm.metadata["cfd_mesh"] = mesh
     return tm
@@ -1049,13 +1069,13 @@ def volume_mesh(source: Any, edge_factor: float = 0.3, flow_extensions: float | 
                 growth: float = 1.2, min_size: float | None = None, max_size: float | None = None,
                 cap_segments: int = 32, optimize: bool = True, threads: int | None = None,
                 verbose: bool = False, progress: bool = False, gmsh_options: dict[str, float] | None = None,
-                separate_contacts: bool = True) -> CFDMesh:
+                separate_contacts: bool = True, crease_radius: float = CREASE_RADIUS) -> CFDMesh:
     """A tetrahedral (and, with boundary layers, prismatic) volume mesh of a vessel tree.
 
     Parameters
     ----------
     source, edge_factor, flow_extensions, min_size, max_size, cap_segments, optimize, threads, verbose, \
-progress, gmsh_options, separate_contacts
+progress, gmsh_options, separate_contacts, crease_radius
         As for :func:`surface_mesh`.
     boundary_layers : int
         Number of prism layers along the wall (0: tetrahedra only).
@@ -1082,4 +1102,4 @@ progress, gmsh_options, separate_contacts
                  flow_extensions=flow_extensions, cap_segments=cap_segments, boundary_layers=boundary_layers,
                  first_layer=first_layer, first_layer_mm=first_layer_mm, growth=growth, optimize=optimize,
                  threads=threads, verbose=verbose, progress=progress, gmsh_options=gmsh_options,
-                 separate_contacts=separate_contacts)
+                 separate_contacts=separate_contacts, crease_radius=crease_radius)

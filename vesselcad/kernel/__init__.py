@@ -6,6 +6,7 @@
 - :mod:`.centreline`: :class:`Centreline3D`, the 3D centreline as a B-spline curve.
 - :mod:`.pipes`: variable-radius NURBS pipes (exact circular sections, rotation-minimizing frames).
 - :mod:`.solid`: the fused tree solid (:class:`VesselSolid`), checks, STEP/STL/GLB/BREP, interop.
+- :mod:`.creases`: sharp junction creases of the solid and rounding them (fillets) for CFD meshes.
 """
 
 from .centreline import Centreline3D

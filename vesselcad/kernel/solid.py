@@ -337,6 +337,28 @@ class VesselSolid:
             raise ArgumentError("with_flow_extensions: this solid already has flow extensions")
         return _extend(self, {"inlet": float(inlet), "outlet": float(outlet)})
 
+    def creases(self, max_angle_deg: float = 180.0) -> list[Any]:
+        """Junction edges (walls of two branches meeting) and how sharp they get, sharpest first.
+
+        See :func:`vesselcad.kernel.creases.find_creases`.
+        """
+        from .creases import find_creases
+
+        return find_creases(self, max_angle_deg)
+
+    def round_creases(self, max_angle_deg: float = 45.0, radius_fraction: float = 0.1) -> VesselSolid:
+        """The solid with its sharp junction creases rounded by OCCT fillets (a new solid).
+
+        Where a vessel leaves its parent at a shallow angle the walls meet at a
+        knife-edge that boundary-layer prisms cannot follow; a fillet of
+        ``radius_fraction`` times the thinner vessel's radius rounds every
+        junction edge whose tissue wedge gets sharper than ``max_angle_deg``.
+        See :func:`vesselcad.kernel.creases.round_creases`.
+        """
+        from .creases import round_creases
+
+        return round_creases(self, max_angle_deg, radius_fraction)
+
     def face_properties(self) -> list[dict[str, Any]]:
         """Each face's tag, area (mm^2) and centroid (mm), in :attr:`faces` order.
 
