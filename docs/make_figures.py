@@ -4,6 +4,8 @@
 - phantom_preview.png: the contact sheet of ``vesselcad phantom --preview``.
 - phantom_vs_real.png: phantom frames next to real angiograms (CIMAT, ARCADE).
 - centreline_graph_real.png: centreline graphs of real manual vessel masks (CIMAT).
+- cfd_crease.png: prism layers at a 10-degree branch, crease kept and rounded (``--crease``
+  makes only this one).
 - report_html.png: ``vesselcad demo``'s report.html as headless Chromium shows it (offline);
   only with ``--report`` (needs Chromium and playwright, as tests/test_report_browser.py).
 """
@@ -153,9 +155,84 @@ def report_screenshot(path: Path) -> None:
         raise RuntimeError(f"report.html did not render cleanly: {visit.errors or visit.status}")
 
 
+def _section(points: np.ndarray, cells: np.ndarray, edges: np.ndarray, z: float
+             ) -> tuple[list[np.ndarray], np.ndarray]:
+    """Polygons (x, y) where the plane at height ``z`` cuts cells (convex ones), and which cells."""
+    a, b = points[cells[:, edges[:, 0]]], points[cells[:, edges[:, 1]]]  # (n, e, 3)
+    da, db = a[..., 2] - z, b[..., 2] - z
+    cut = (da * db) < 0
+    t = np.where(cut, da / np.where(cut, da - db, 1.0), 0.0)
+    p = a + t[..., None] * (b - a)
+    out = []
+    which = np.flatnonzero(cut.sum(axis=1) >= 3)
+    for k in which:
+        q = p[k, cut[k], :2]
+        c = q.mean(axis=0)
+        out.append(q[np.argsort(np.arctan2(q[:, 1] - c[1], q[:, 0] - c[0]))])
+    return out, which
+
+
+def crease_figure(path: Path) -> None:
+    """Section through the prism layers at a 10-degree branch (tests/test_creases.py), the crease
+    kept (``crease_radius=0``) and rounded (the default), coloured by scaled Jacobian."""
+    import warnings
+
+    from matplotlib.collections import PolyCollection
+
+    from vesselcad.cfd.quality import scaled_jacobian
+
+    t = np.radians(10.0)
+
+    def line(p0, d, length, n=30):
+        return (np.asarray(p0, float) + np.linspace(0, length, n)[:, None] * np.asarray(d, float)).tolist()
+
+    tree = vc.VesselTree.from_json({"units": "mm", "frame": "LPS", "branches": [
+        {"id": 0, "parent": None, "name": "parent", "points": line([0, 0, 0], [1, 0, 0], 30),
+         "radius": [1.5] * 30},
+        {"id": 1, "parent": 0, "name": "child", "points": line([8, 0, 0], [np.cos(t), np.sin(t), 0], 20),
+         "radius": [0.5] * 30}]})
+    solid = tree.solid()
+    crease = solid.creases()[0].point
+    edges = {"tetra": np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]),
+             "wedge": np.array([[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3], [0, 3], [1, 4], [2, 5]])}
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.4), sharey=True)
+    for ax, radius in zip(axes, (0.0, 0.1), strict=True):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", vc.VesselcadWarning)
+            mesh = vc.cfd.volume_mesh(solid, boundary_layers=3, crease_radius=radius)
+        polys, sj = [], []
+        for kind, e in edges.items():
+            c = mesh.cells[kind]
+            near = np.all(np.abs(mesh.points[c].mean(axis=1)[:, :2] - crease[:2]) < [1.6, 0.9], axis=1)
+            c = c[near]
+            q = scaled_jacobian(mesh.points, c, kind)
+            cut, which = _section(mesh.points, c, e, float(crease[2]) + 1e-3)
+            polys += cut
+            sj += list(q[which])
+        coll = PolyCollection(polys, array=np.clip(sj, -0.2, 1.0), cmap="viridis", edgecolors="k",
+                              linewidths=0.2, clim=(-0.2, 1.0))
+        ax.add_collection(coll)
+        ax.set_xlim(crease[0] - 0.7, crease[0] + 0.7)
+        ax.set_ylim(crease[1] - 0.3, crease[1] + 0.3)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (mm)")
+        worst = min(mesh.quality[k]["scaled_jacobian_min"] for k in ("wedge", "tetra"))
+        inverted = sum(mesh.quality[k]["inverted"] for k in ("wedge", "tetra"))
+        what = "crease kept (crease_radius=0)" if radius == 0 else f"crease rounded (crease_radius={radius})"
+        ax.set_title(f"{what}\nmin scaled Jacobian {worst:.2f}, {inverted} inverted")
+    axes[0].set_ylabel("y (mm)")
+    fig.colorbar(coll, ax=axes, label="scaled Jacobian (section z = 0 at the crease)", shrink=0.85)
+    fig.suptitle("3 prism layers where a r 0.5 mm vessel leaves a r 1.5 mm one at 10 degrees")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main() -> int:
     out = HERE / "img"
     out.mkdir(exist_ok=True)
+    if "--crease" in sys.argv[1:]:
+        crease_figure(out / "cfd_crease.png")
+        return 0
     if "--report" in sys.argv[1:]:
         report_screenshot(out / "report_html.png")
         return 0
