@@ -17,6 +17,8 @@ For each phantom tree (frame 0 of run A's ground truth) this builds
   exact distance to the B-rep faces (``VesselSolid.distance``);
 - deviation from the raw ground-truth tubes (the input polylines and radii),
   which adds the centreline rebuild (0.05 mm) and the rounded merges;
+- the shortest B-rep edge of the solid (a mesher must resolve it: wall seams placed
+  clear of junctions keep it long, docs/solids.md);
 - seconds per tree (``tree.solid()``), STEP and STL sizes, STL volume error.
 
 Usage::
@@ -318,6 +320,7 @@ def measure(anatomy: str, seed: int, render_dir: Path | None = None) -> dict:
         "stl_volume_err_pct": 100 * (mesh.volume - vol) / vol,
         "hausdorff_mm": float(max(d_fwd.max(), d_back.max())), "brep_to_tube_mm": float(d_fwd.max()),
         "tube_to_brep_mm": float(d_back.max()),
+        "shortest_edge_mm": chk["shortest_edge_mm"],
         "raw_truth_max_mm": float(d_raw.max()), "raw_truth_p99_mm": float(np.percentile(d_raw, 99)),
         "seconds": seconds, "timings": {k: round(v, 3) for k, v in solid.timings_s.items()},
         "step_kb": step_kb, "stl_kb": stl_kb, "warnings": solid.warnings,
@@ -343,19 +346,19 @@ def main(argv: list[str] | None = None) -> int:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}, "
           f"numpy {np.__version__}\n")
     print("| anatomy | seed | branches | pipes | failed | valid solid | STL watertight | Euler | volume mm³ "
-          "| vol. err vs ref % | STL vol. err % | Hausdorff mm | raw truth max (p99) mm | s | STEP KB "
-          "| STL KB |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| vol. err vs ref % | STL vol. err % | Hausdorff mm | raw truth max (p99) mm | shortest edge mm "
+          "| s | STEP KB | STL KB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "error" in r:
-            print(f"| {r['anatomy']} | {r['seed']} | error: {r['error']} |" + " |" * 13)
+            print(f"| {r['anatomy']} | {r['seed']} | error: {r['error']} |" + " |" * 14)
             continue
         print(f"| {r['anatomy']} | {r['seed']} | {r['branches']} | {r['pipes']} | {r['failed']} | "
               f"{'yes' if r['watertight'] else 'NO'} | {'yes' if r['stl_watertight'] else 'NO'} | "
               f"{r['euler']} | "
               f"{r['volume_mm3']:.1f} | {r['volume_err_pct']:+.4f} | {r['stl_volume_err_pct']:+.2f} | "
               f"{r['hausdorff_mm']:.4f} | {r['raw_truth_max_mm']:.3f} ({r['raw_truth_p99_mm']:.3f}) | "
-              f"{r['seconds']:.1f} | {r['step_kb']:.0f} | {r['stl_kb']:.0f} |")
+              f"{r['shortest_edge_mm']:.3f} | {r['seconds']:.1f} | {r['step_kb']:.0f} | {r['stl_kb']:.0f} |")
     ok = [r for r in rows if "error" not in r]
     good = [r for r in ok if r["watertight"] and r["stl_watertight"] and r["failed"] == 0]
     if ok:
@@ -377,6 +380,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| seconds per tree | <= 3 s for 20 branches | mean {sec.mean():.1f} s "
               f"({nb.mean():.1f} pipes), max {sec.max():.1f} s; "
               f"scaled to 20 pipes: mean {per20.mean():.1f} s |")
+        short = np.array([r["shortest_edge_mm"] for r in ok])
+        print(f"| shortest B-rep edge (the mesher resolves it) | – | min {short.min():.3f} mm, median "
+              f"{np.median(short):.3f} mm; {np.count_nonzero(short < 0.1)}/{len(ok)} trees below 0.1 mm |")
         print(f"| STEP / STL size | – | mean {np.mean([r['step_kb'] for r in ok]):.0f} KB / "
               f"{np.mean([r['stl_kb'] for r in ok]):.0f} KB |")
         print(f"| deviation from the raw truth tubes (rebuild + merges) | – | max "

@@ -803,7 +803,7 @@ class VesselTree:
             ``failed`` lists branches left out (with the reason); ``warnings``
             gathers the branches' warnings (radius clamps, moved starts).
         """
-        from .kernel.pipes import branch_pipe
+        from .kernel.pipes import branch_pipe, seam_angles
         from .kernel.solid import fuse_pipes
 
         if not self.branches:
@@ -814,6 +814,9 @@ class VesselTree:
 
         t0 = time.perf_counter()
         specs = self.pipe_specs(tol_mm, merge, max_merge_angle_deg)
+        seams = seam_angles(specs)
+        for s in specs:
+            s["seam_deg"] = seams[s["id"]]  # wall seams clear of the other vessels' walls
         t1 = time.perf_counter()
         roots = [s for s in specs if s["parent"] is None]
         failed: dict[int, str] = {}
@@ -842,7 +845,8 @@ class VesselTree:
                 continue
             try:
                 pipes.append(branch_pipe(s["id"], s["name"], s["parent"], s["spine"], s["radius"],
-                                         station_step_mm, s.get("cuts", ()), s.get("end", "flat")))
+                                         station_step_mm, s.get("cuts", ()), s.get("end", "flat"),
+                                         s.get("seam_deg", 0.0)))
             except Exception as exc:  # one bad branch never loses the rest
                 failed[s["id"]] = f"pipe could not be built: {exc}"
         t2 = time.perf_counter()

@@ -29,6 +29,7 @@ from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Curve2d
 from OCP.BRepCheck import BRepCheck_Analyzer
 from OCP.BRepFilletAPI import BRepFilletAPI_MakeFillet
 from OCP.BRepGProp import BRepGProp_Face
+from OCP.GCPnts import GCPnts_AbscissaPoint
 from OCP.gp import gp_Pnt, gp_Vec
 from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_SOLID
 from OCP.TopExp import TopExp
@@ -46,7 +47,8 @@ __all__ = ["Crease", "find_creases", "round_creases", "CREASE_ANGLE_DEG", "CREAS
 CREASE_ANGLE_DEG = 45.0
 #: Fillet radius as a share of the thinner vessel's radius at the crease.
 CREASE_RADIUS_FRACTION = 0.1
-_SAMPLES = 24  # samples per edge for the wedge angle
+_SAMPLES = 24  # samples per edge for the wedge angle, at least ...
+_SAMPLE_STEP_MM = 0.1  # ... and one every this much of its length
 _MAX_VOLUME_SHARE = 0.005  # a fillet that changes the volume more than this went wrong
 
 
@@ -91,18 +93,35 @@ def _normal(face: TopoDS_Face, u: float, v: float) -> np.ndarray:
 
 
 def _wedge(edge: TopoDS_Edge, f1: TopoDS_Face, f2: TopoDS_Face) -> tuple[float, np.ndarray]:
-    """Smallest tissue wedge angle (deg) along an edge shared by two faces, and where."""
+    """Smallest tissue wedge angle (deg) along an edge shared by two faces, and where.
+
+    Sampled at least ``_SAMPLES`` times and every ``_SAMPLE_STEP_MM`` of the edge (a
+    whole junction loop is one edge when no seam crosses it), then refined around the
+    smallest sample (bounded scalar search).
+    """
+    from scipy.optimize import minimize_scalar
+
     c3 = BRepAdaptor_Curve(edge)
     c1, c2 = BRepAdaptor_Curve2d(edge, f1), BRepAdaptor_Curve2d(edge, f2)
-    best, where = 180.0, np.zeros(3)
-    for t in np.linspace(c3.FirstParameter(), c3.LastParameter(), _SAMPLES):
+
+    def angle(t: float) -> float:
         uv1, uv2 = c1.Value(float(t)), c2.Value(float(t))
         n1, n2 = _normal(f1, uv1.X(), uv1.Y()), _normal(f2, uv2.X(), uv2.Y())
-        a = 180.0 - float(np.degrees(np.arccos(np.clip(n1 @ n2, -1.0, 1.0))))
-        if a < best:
-            p = c3.Value(float(t))
-            best, where = a, np.array([p.X(), p.Y(), p.Z()])
-    return best, where
+        return 180.0 - float(np.degrees(np.arccos(np.clip(n1 @ n2, -1.0, 1.0))))
+
+    t0, t1 = c3.FirstParameter(), c3.LastParameter()
+    n = max(_SAMPLES, int(np.ceil(GCPnts_AbscissaPoint.Length_s(c3) / _SAMPLE_STEP_MM)) + 1)
+    ts = np.linspace(t0, t1, n)
+    values = np.array([angle(t) for t in ts])
+    k = int(np.argmin(values))
+    best, t_best = float(values[k]), float(ts[k])
+    lo, hi = ts[max(k - 1, 0)], ts[min(k + 1, n - 1)]
+    if hi > lo:
+        res = minimize_scalar(angle, bounds=(lo, hi), method="bounded", options={"xatol": 1e-6 * (t1 - t0)})
+        if res.fun < best:
+            best, t_best = float(res.fun), float(res.x)
+    p = c3.Value(t_best)
+    return best, np.array([p.X(), p.Y(), p.Z()])
 
 
 def _radius_lookup(solid: VesselSolid) -> Any:
@@ -127,7 +146,8 @@ def _radius_lookup(solid: VesselSolid) -> Any:
 
 
 def find_creases(solid: VesselSolid, max_angle_deg: float = 180.0) -> list[Crease]:
-    """Junction edges of a fused tree (walls of two different branches meeting), sharpest first.
+    """Junction edges of a fused tree (walls of two branches meeting, or of two pieces of one
+    branch that passes over itself), sharpest first.
 
     Parameters
     ----------
@@ -155,7 +175,10 @@ def find_creases(solid: VesselSolid, max_angle_deg: float = 180.0) -> list[Creas
         if any(x is None or not x[0].IsSame(f) for x, f in zip(tagged, faces, strict=True)):
             continue
         t1, t2 = (x[1] for x in tagged if x is not None)
-        if t1.role != "wall" or t2.role != "wall" or t1.branch_id == t2.branch_id:
+        # walls of two branches, or of two pieces of one branch that crosses itself (a vessel
+        # that comes back over itself is swept in pieces; where the pieces join, the walls
+        # are tangent and the wedge is 180 deg)
+        if t1.role != "wall" or t2.role != "wall":
             continue
         angle, point = _wedge(edge, faces[0], faces[1])
         if angle >= max_angle_deg:
