@@ -266,6 +266,23 @@ def test_vessel_passing_over_itself_is_one_solid_without_double_counting():
     assert {t.role for _f, t in solid.faces} == {"wall", "inlet", "outlet"}
 
 
+def test_crease_where_a_vessel_passes_over_itself():
+    # The alpha loop's two straight passes (along x at z = 0, along y at z = d, radius r)
+    # are pieces of one branch; where their walls meet, the outward normals are
+    # (0, y, z) / r and (x, 0, z - d) / r, so the tissue wedge 180 - acos(z (z - d) / r^2)
+    # is smallest at z = d / 2: 180 - acos(-d^2 / 4 r^2) = 83.6 deg, at |x| = |y| = 1.414.
+    r, d = 1.5, 1.0
+    pts = _alpha_loop(d)[::10]
+    solid = _tree([{"id": 0, "parent": None, "name": "loop", "points": pts.tolist(),
+                    "radius": [r] * len(pts)}]).solid()
+    own = [c for c in solid.creases() if c.branches == (0, 0) and c.angle_deg < 120.0]
+    assert own
+    sharpest = min(own, key=lambda c: c.angle_deg)
+    assert sharpest.angle_deg == pytest.approx(180.0 - np.degrees(np.arccos(-(d**2) / (4 * r**2))), abs=0.5)
+    np.testing.assert_allclose(np.abs(sharpest.point), [np.sqrt(r**2 - 0.25), np.sqrt(r**2 - 0.25), 0.5],
+                               atol=0.05)
+
+
 def test_tube_wall_follows_a_tight_bend_and_a_quick_radius_change():
     # A quarter-turn-plus arc of curvature radius 4 mm whose radius grows from 1.0 to
     # 1.8 mm within 2 mm: every wall point must lie on the circle of the exact tube in
