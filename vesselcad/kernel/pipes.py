@@ -57,7 +57,7 @@ SECTION_TOL_MM = 2e-3
 _FRAME_STEP_MM = 0.25  # spacing of the rotation-minimizing frame samples
 _MAX_REFINE = 8  # rounds of station insertion
 _MIN_STATION_GAP_MM = 0.05  # stations are never added closer than this
-_SEAM_STEP_MM = 0.5  # spacing of the seam samples that seam_angles scores
+_SEAM_STEP_MM = 0.25  # spacing of the seam samples that seam_angles scores
 
 _ANGLES = np.radians(np.arange(0, 361, 45, dtype=float))
 _POLE_RADIUS = np.array([1.0, np.sqrt(2.0)] * 4 + [1.0])
