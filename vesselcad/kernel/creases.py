@@ -240,7 +240,10 @@ def round_creases(solid: VesselSolid, max_angle_deg: float = CREASE_ANGLE_DEG,
 
     if not (isinstance(radius_fraction, int | float) and 0 < radius_fraction < 1):
         raise ArgumentError(f"radius_fraction: expected a number in (0, 1), got {radius_fraction!r}")
-    creases = find_creases(solid, max_angle_deg)
+    # Between two branches only: where a vessel passes over itself the crease is as sharp as
+    # the crossing, and rounding it there made the prisms beside it worse (cs 3005: 0.099
+    # against 0.126 with it kept; its 18 deg bound sin 9 deg = 0.16 is above the goal).
+    creases = [c for c in find_creases(solid, max_angle_deg) if c.branches[0] != c.branches[1]]
     if not creases:
         return solid
     names = {p.branch_id: p.name for p in solid.pipes}

@@ -153,7 +153,7 @@ def seam_angles(specs: list[dict[str, Any]], n_angles: int = 36) -> dict[int, fl
     needs tiny elements beside thicker prism layers (a 0.05 scaled Jacobian at a
     coronary sinus junction). For every branch, parents first, ``n_angles`` seam
     positions are scored by their clearance along the seam (sampled every
-    0.5 mm, and down an end dome's meridian), measured with the other tubes'
+    0.25 mm, and down an end dome's meridian), measured with the other tubes'
     distance functions (from their centreline samples and radii):
 
     - seam points deep inside another tube do not count (the union removes them);
