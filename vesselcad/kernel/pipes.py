@@ -188,10 +188,21 @@ def seam_angles(specs: list[dict[str, Any]], n_angles: int = 36) -> dict[int, fl
     data = {int(s["id"]): _seam_candidates(s, n_angles) for s in specs}
     chosen: dict[int, float] = {}
     placed: list[np.ndarray] = []  # the seams chosen so far
+    parent = {int(s["id"]): s.get("parent") for s in specs}
+
+    def kin(a: int, b: int) -> bool:  # vessels that meet at a junction: parent, child, sibling, grand-
+        pa, pb = parent.get(a), parent.get(b)
+        return (pa == b or pb == a or (pa is not None and pa == pb)
+                or (pa is not None and parent.get(pa) == b) or (pb is not None and parent.get(pb) == a))
+
     for s in specs:
         me = data[int(s["id"])]
         others = [data[int(q["id"])] for q in specs if q is not s]
-        clear, crossings = _seam_clearance(me, others, cKDTree(np.vstack(placed)) if placed else None)
+        # a vessel that touches this one away from any junction: a seam must not run inside it
+        # (OCCT then kept a stretch of that seam's wall inside the other vessel, 0.3 mm deep)
+        strangers = [not kin(int(s["id"]), int(q["id"])) for q in specs if q is not s]
+        clear, crossings = _seam_clearance(me, others, cKDTree(np.vstack(placed)) if placed else None,
+                                           strangers)
         score = np.floor(np.minimum(clear.min(axis=0), me["cap"]) / 0.05)
         best = np.flatnonzero(score == score.max())
         best = best[crossings[best] == crossings[best].min()]
@@ -240,16 +251,19 @@ def _tube_distance(points: np.ndarray, tree: Any, r: np.ndarray, reach: float) -
     return dist - np.r_[r, 0.0][idx]
 
 
-def _seam_clearance(me: dict[str, Any], others: list[dict[str, Any]], placed: Any
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Clearance (mm) of every seam candidate sample, (n, K), and the vertices per candidate."""
+def _seam_clearance(me: dict[str, Any], others: list[dict[str, Any]], placed: Any,
+                    strangers: list[bool] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Clearance (mm) of every seam candidate sample, (n, K), and the vertices per candidate;
+    samples inside a tube flagged in ``strangers`` (one that touches this one away from any
+    junction) get none."""
     from scipy.spatial import cKDTree
 
     pts, cap = me["pts"], me["cap"]
     n, n_angles = pts.shape[:2]
     flat = pts.reshape(-1, 3)
     dists = []  # signed distance of every sample to each nearby tube's wall
-    for other in others:
+    inside_stranger = np.zeros((n, n_angles), bool)
+    for other, stranger in zip(others, strangers or [False] * len(others), strict=True):
         if np.any(me["lo"] - cap > other["hi"]) or np.any(me["hi"] + cap < other["lo"]):
             continue
         box = np.flatnonzero(np.all((flat > other["lo"] - cap) & (flat < other["hi"] + cap), axis=1))
@@ -257,6 +271,8 @@ def _seam_clearance(me: dict[str, Any], others: list[dict[str, Any]], placed: An
             d = np.full(len(flat), np.inf)
             d[box] = _tube_distance(flat[box], other["tree"], other["r"], other["reach"] + cap)
             dists.append(d.reshape(n, n_angles))
+            if stranger:
+                inside_stranger |= dists[-1] < 0
     for j in range(me["pieces"] if me["pieces"] > 1 else 0):  # a pipe's own other pieces
         use = (me["piece"] != j) & ~me["near_cut"]
         own = me["wall_piece"] == j
@@ -276,7 +292,7 @@ def _seam_clearance(me: dict[str, Any], others: list[dict[str, Any]], placed: An
     at_wall = (union < 0) & (union >= -h)
     at_wall[1:] |= flip
     at_wall[:-1] |= flip
-    clear = np.where(union < -h, np.inf, np.where(at_wall, m2, m1))
+    clear = np.where(inside_stranger, 0.0, np.where(union < -h, np.inf, np.where(at_wall, m2, m1)))
     with np.errstate(invalid="ignore"):  # how steeply the seam meets the wall (sine of the angle)
         slope = np.abs(np.gradient(np.where(np.isfinite(union), union, 1e3), h, axis=0))
     clear = np.where(at_wall, np.minimum(clear, cap * np.minimum(slope / 0.5, 1.0)), clear)
