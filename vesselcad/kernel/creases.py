@@ -84,10 +84,10 @@ class Crease:
                 f"at=({x:.2f}, {y:.2f}, {z:.2f}), radius_mm={self.radius_mm:.3f})")
 
 
-def _normal(face: TopoDS_Face, u: float, v: float) -> np.ndarray:
+def _normal(face: BRepGProp_Face, u: float, v: float) -> np.ndarray:
     """Outward unit normal of a face of a solid at (u, v) (the face's orientation applied)."""
     p, n = gp_Pnt(), gp_Vec()
-    BRepGProp_Face(face).Normal(u, v, p, n)
+    face.Normal(u, v, p, n)
     out = np.array([n.X(), n.Y(), n.Z()])
     return out / max(float(np.linalg.norm(out)), 1e-300)
 
@@ -103,10 +103,11 @@ def _wedge(edge: TopoDS_Edge, f1: TopoDS_Face, f2: TopoDS_Face) -> tuple[float, 
 
     c3 = BRepAdaptor_Curve(edge)
     c1, c2 = BRepAdaptor_Curve2d(edge, f1), BRepAdaptor_Curve2d(edge, f2)
+    g1, g2 = BRepGProp_Face(f1), BRepGProp_Face(f2)  # once per edge, not per sample
 
     def angle(t: float) -> float:
         uv1, uv2 = c1.Value(float(t)), c2.Value(float(t))
-        n1, n2 = _normal(f1, uv1.X(), uv1.Y()), _normal(f2, uv2.X(), uv2.Y())
+        n1, n2 = _normal(g1, uv1.X(), uv1.Y()), _normal(g2, uv2.X(), uv2.Y())
         return 180.0 - float(np.degrees(np.arccos(np.clip(n1 @ n2, -1.0, 1.0))))
 
     t0, t1 = c3.FirstParameter(), c3.LastParameter()

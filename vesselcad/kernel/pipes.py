@@ -252,7 +252,7 @@ def _tube_distance(points: np.ndarray, tree: Any, r: np.ndarray, reach: float) -
 
 
 def _seam_clearance(me: dict[str, Any], others: list[dict[str, Any]], placed: Any,
-                    strangers: list[bool] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    strangers: list[bool]) -> tuple[np.ndarray, np.ndarray]:
     """Clearance (mm) of every seam candidate sample, (n, K), and the vertices per candidate;
     samples inside a tube flagged in ``strangers`` (one that touches this one away from any
     junction) get none."""
@@ -263,7 +263,7 @@ def _seam_clearance(me: dict[str, Any], others: list[dict[str, Any]], placed: An
     flat = pts.reshape(-1, 3)
     dists = []  # signed distance of every sample to each nearby tube's wall
     inside_stranger = np.zeros((n, n_angles), bool)
-    for other, stranger in zip(others, strangers or [False] * len(others), strict=True):
+    for other, stranger in zip(others, strangers, strict=True):
         if np.any(me["lo"] - cap > other["hi"]) or np.any(me["hi"] + cap < other["lo"]):
             continue
         box = np.flatnonzero(np.all((flat > other["lo"] - cap) & (flat < other["hi"] + cap), axis=1))
