@@ -652,3 +652,53 @@ def test_edges_of_a_few_micrometres_are_merged_into_their_neighbours():
     assert merged.to_trimesh().is_watertight
     with pytest.raises(vc.VesselcadError, match="min_length_mm"):
         solid.without_short_edges(0.0)
+
+
+def test_winding_number_and_distance_of_a_closed_triangle_mesh():
+    from vesselcad.kernel.solid import _winding_and_distance
+
+    box = trimesh.creation.box(extents=(2.0, 4.0, 6.0))  # centred on the origin, outward faces
+    pts = np.array([[0.0, 0.0, 0.0], [0.9, 1.9, 2.9], [1.5, 0.0, 0.0], [0.0, 0.0, -4.0], [2.0, 3.0, 0.0]])
+    w, d = _winding_and_distance(np.asarray(box.vertices), np.asarray(box.faces), pts)
+    np.testing.assert_allclose(w, [1, 1, 0, 0, 0], atol=1e-9)
+    # distances to the box's surface: nearest face, face, face, face, edge (x = 1, y = 2)
+    np.testing.assert_allclose(d, [1.0, 0.1, 0.5, 1.0, np.hypot(1.0, 1.0)], atol=1e-12)
+
+
+def test_point_classification_agrees_with_the_analytic_y(y_solid):
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_Copy
+    from OCP.BRepMesh import BRepMesh_IncrementalMesh
+    from OCP.TopAbs import TopAbs_FACE
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopLoc import TopLoc_Location
+    from OCP.TopoDS import TopoDS
+
+    from vesselcad.kernel.solid import PROBE_DEFLECTION_MM, _inside, _probe_mesh
+
+    shape = BRepBuilderAPI_Copy(y_solid.shape).Shape()  # without the triangulation other tests made
+
+    def meshed() -> bool:
+        ex = TopExp_Explorer(shape, TopAbs_FACE)
+        return BRep_Tool.Triangulation_s(TopoDS.Face_s(ex.Current()), TopLoc_Location()) is not None
+
+    assert not meshed()
+    rng = np.random.default_rng(7)
+    pts = rng.uniform([-20, -3, -2], [20, 3, 42], size=(300, 3))
+    # and points 0.05-0.5 mm on both sides of the main pipe's wall: the exact classifier's share
+    phi, z = rng.uniform(0, 2 * np.pi, 60), rng.uniform(2, 15, 60)
+    rad = 2.0 + rng.choice([-1, 1], 60) * rng.uniform(0.05, 0.5, 60)
+    pts = np.vstack([pts, np.c_[rad * np.cos(phi), rad * np.sin(phi), z]])
+    truth = _inside_y(pts)
+    np.testing.assert_array_equal(_inside(shape, pts), truth)
+    assert 30 < truth.sum() < len(pts) - 30
+    # the throwaway triangulation is gone again, and it is coarse
+    assert not meshed()
+    verts, tris = _probe_mesh(shape)
+    assert len(tris) < 5000 and PROBE_DEFLECTION_MM >= 0.1
+    assert not meshed()
+    # a shape that carries a triangulation (an exported one) keeps it and is classified exactly
+    BRepMesh_IncrementalMesh(shape, 0.01, False, 0.3, True)
+    assert _probe_mesh(shape) is None
+    np.testing.assert_array_equal(_inside(shape, pts[:40]), truth[:40])
+    assert meshed()
