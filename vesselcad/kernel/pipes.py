@@ -596,7 +596,7 @@ def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int,
     # object for the same domain and would not intersect the pieces where they cross.
     parts = [tube_solid(surface.Copy(), (v0, v1), end_dome if v1 == bounds[-1] else None)
              for v0, v1 in zip(bounds[:-1], bounds[1:], strict=True)]
-    op = _general_fuse([p[0] for p in parts], FUZZY_MM, parallel=False)
+    op = _general_fuse([p[0] for p in parts], FUZZY_MM)
     shape = op.Shape() if op is not None else None
     solids = _subshapes(shape, TopAbs_SOLID) if shape is not None else []
     if len(solids) != 1 or not BRepCheck_Analyzer(solids[0]).IsValid():
