@@ -28,10 +28,9 @@ LEFT = np.array([np.sin(ANGLE), 0.0, np.cos(ANGLE)])
 RIGHT = np.array([-np.sin(ANGLE), 0.0, np.cos(ANGLE)])
 
 
-@pytest.fixture(scope="module")
-def y_solid():
+def _y_tree():
     """A Y: straight parent r = 2 along z (0..40), two r = 1.4 children from z = 20 at +-40 deg."""
-    tree = _tree([
+    return _tree([
         {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
          "radius": [2.0] * 30},
         {"id": 1, "parent": 0, "name": "left", "points": _line([0, 0, 20], LEFT, 25).tolist(),
@@ -39,7 +38,12 @@ def y_solid():
         {"id": 2, "parent": 0, "name": "right", "points": _line([0, 0, 20], RIGHT, 25).tolist(),
          "radius": [1.4] * 30},
     ])
-    return tree.solid()
+
+
+@pytest.fixture(scope="module")
+def y_solid():
+    """The Y of :func:`_y_tree` as one solid."""
+    return _y_tree().solid()
 
 
 def _inside_y(p):
@@ -728,16 +732,6 @@ def test_a_coarse_mesh_that_cuts_through_a_vessel_is_not_trusted():
     assert not np.any(ok & (np.round(w) != 1))  # wherever the mesh is wrong, it is not trusted
     assert _inside(pipe.solid, axis).all()
 
-
-def _y_tree():
-    return _tree([
-        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
-         "radius": [2.0] * 30},
-        {"id": 1, "parent": 0, "name": "left", "points": _line([0, 0, 20], LEFT, 25).tolist(),
-         "radius": [1.4] * 30},
-        {"id": 2, "parent": 0, "name": "right", "points": _line([0, 0, 20], RIGHT, 25).tolist(),
-         "radius": [1.4] * 30},
-    ])
 
 
 def test_a_branch_the_general_fuse_loses_is_added_back(monkeypatch):
