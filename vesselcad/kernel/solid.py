@@ -1038,7 +1038,7 @@ def _inside(shape: TopoDS_Shape, points: np.ndarray, stop_at_outside: bool = Fal
     against the same points of the triangle: ``delta``), and the point must be
     farther than ``2 delta + 0.05`` mm from it (a triangle farther away than
     twice its longest edge counts as clear). OCCT's mesher does leave triangles
-    cutting through a vessel at this coarseness (1.5 mm off on a long root
+    cutting through a vessel at this coarseness (up to 4 mm off a long root
     wall), which this catches. The other points (and all of them for a shape
     that already carries a triangulation, which is left alone) go to OCCT's
     exact point classification (1e-6 mm), 10-60 ms each on a tree. With
