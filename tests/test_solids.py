@@ -774,3 +774,19 @@ def test_a_branch_the_general_fuse_loses_is_added_back(monkeypatch):
         cls.Perform(gp_Pnt(*map(float, q)), 1e-6)
         got.append(cls.State() == TopAbs_IN)
     np.testing.assert_array_equal(got, _inside_y(sample))
+
+
+def test_a_tree_with_two_roots_keeps_the_larger_and_says_why():
+    y = [
+        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+         "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "name": "left", "points": _line([0, 0, 20], LEFT, 25).tolist(),
+         "radius": [1.4] * 30},
+    ]
+    stray = {"id": 5, "parent": None, "name": "stray", "points": _line([30, 0, 0], [0, 1, 0], 20).tolist(),
+             "radius": [1.0] * 30}
+    solid = _tree([*y, stray]).solid()
+    assert solid.branch_ids == [0, 1]
+    assert solid.failed == {5: "the root of another tree (1 branch); one solid holds one tree: the largest, "
+                                "from root 0 (2 branches)"}
+    assert solid.volume == pytest.approx(_tree(y).solid().volume, rel=1e-9)

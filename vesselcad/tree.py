@@ -829,7 +829,12 @@ class VesselTree:
             keep = max(sizes, key=lambda k: sizes[k])
             for s in specs:
                 if owner[s["id"]] != keep:
-                    failed[s["id"]] = f"belongs to another root ({owner[s['id']]}); one solid holds one tree"
+                    if s["parent"] is None:
+                        whose = f"the root of another tree ({_n_branches(sizes[s['id']])})"
+                    else:
+                        whose = f"in the tree of root {owner[s['id']]}"
+                    failed[s["id"]] = (f"{whose}; one solid holds one tree: the largest, from root {keep} "
+                                       f"({_n_branches(sizes[keep])})")
         pipes, warnings = [], []
         it = specs
         if progress:
@@ -859,6 +864,10 @@ class VesselTree:
 
 
 # ------------------------------------------------------------------- helpers
+def _n_branches(n: int) -> str:
+    return f"{n} branch" if n == 1 else f"{n} branches"
+
+
 def _project_params(spline: interpolate.BSpline, points: np.ndarray, step: float = 0.05) -> np.ndarray:
     """Parameters of the nearest curve points (dense sampling + one Newton step)."""
     k = spline.k
