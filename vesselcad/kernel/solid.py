@@ -568,15 +568,10 @@ class VesselSolid:
         offset = 0
         codes = {"wall": 0, "inlet": 1, "outlet": 2, "cap": 3}
         for face, tag in self.faces:
-            loc = TopLoc_Location()
-            tri = BRep_Tool.Triangulation_s(face, loc)
-            if tri is None:
+            mesh = _face_triangulation(face)
+            if mesh is None:
                 raise GeometryError(f"to_trimesh: OCCT could not mesh a face of branch {tag.branch_id}")
-            trsf = loc.Transformation()
-            nodes = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, tri.NbNodes() + 1)])
-            t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
-            if face.Orientation() == TopAbs_REVERSED:
-                t = t[:, ::-1]
+            nodes, t, _ = mesh
             verts.append(nodes)
             tris.append(t + offset)
             branch.append(np.full(len(t), tag.branch_id))
@@ -1127,22 +1122,39 @@ def _probe_mesh(shape: TopoDS_Shape) -> _ProbeMesh | None:
     try:
         verts, uvs, tris, face_of, offset = [], [], [], [], 0
         for j, face in enumerate(faces):
-            tri = BRep_Tool.Triangulation_s(face, loc)
-            if tri is None or not tri.HasUVNodes():
+            mesh = _face_triangulation(face, uv=True)
+            if mesh is None:
                 return None
-            trsf = loc.Transformation()
-            n = tri.NbNodes()
-            verts.append(np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]))
-            uvs.append(np.array([tri.UVNode(i).Coord() for i in range(1, n + 1)]))
-            t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
-            tris.append((t[:, ::-1] if face.Orientation() == TopAbs_REVERSED else t) + offset)
+            nodes, t, uv = mesh
+            verts.append(nodes)
+            uvs.append(uv)
+            tris.append(t + offset)
             face_of.append(np.full(len(t), j))
-            offset += n
+            offset += len(nodes)
         # the faces' surfaces with their locations applied
         return _ProbeMesh(np.vstack(verts), np.vstack(uvs), np.vstack(tris), np.concatenate(face_of),
                           [BRep_Tool.Surface_s(f) for f in faces])
     finally:
         BRepTools.Clean_s(shape)
+
+
+def _face_triangulation(face: TopoDS_Face, uv: bool = False
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+    """A face's triangulation: nodes (n, 3) in place, triangles (m, 3) from 0 and
+    oriented outward, and with ``uv`` the nodes' surface parameters (n, 2); None
+    if the face has none (or no parameters when asked)."""
+    loc = TopLoc_Location()
+    tri = BRep_Tool.Triangulation_s(face, loc)
+    if tri is None or (uv and not tri.HasUVNodes()):
+        return None
+    trsf = loc.Transformation()
+    n = tri.NbNodes()
+    nodes = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)])
+    t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
+    if face.Orientation() == TopAbs_REVERSED:
+        t = t[:, ::-1]
+    params = np.array([tri.UVNode(i).Coord() for i in range(1, n + 1)]) if uv else None
+    return nodes, t, params
 
 
 def _winding(verts: np.ndarray, tris: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -1157,25 +1169,10 @@ def _winding(verts: np.ndarray, tris: np.ndarray, points: np.ndarray) -> np.ndar
 
 
 def _distance_to_triangles(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Distance of each point (n, 3) to its triangle (n, 3, 3)."""
-    a, b, c = (corners[:, k] - points for k in range(3))
-    ab, ac = b - a, c - a
-    n = np.cross(ab, ac)
-    nn = np.einsum("ij,ij->i", n, n)
-    flat = nn <= 1e-24  # a degenerate triangle: its edges only
-    nn = np.where(flat, 1.0, nn)
-    q = -a  # the point, relative to the first corner
-    s = np.einsum("ij,ij->i", np.cross(q, ac), n) / nn
-    t = np.einsum("ij,ij->i", np.cross(ab, q), n) / nn
-    inside = (s >= 0) & (t >= 0) & (s + t <= 1) & ~flat
-    d_plane = np.abs(np.einsum("ij,ij->i", q, n)) / np.sqrt(nn)
+    """Distance of each point (n, 3) to its triangle (n, 3, 3), degenerate ones included."""
+    import trimesh
 
-    def seg(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
-        e = p1 - p0
-        u = np.clip(-np.einsum("ij,ij->i", p0, e) / np.maximum(np.einsum("ij,ij->i", e, e), 1e-300), 0.0, 1.0)
-        return np.linalg.norm(p0 + u[:, None] * e, axis=1)
-
-    return np.where(inside, d_plane, np.minimum(np.minimum(seg(a, b), seg(b, c)), seg(c, a)))
+    return np.linalg.norm(trimesh.triangles.closest_point(corners, points) - points, axis=1)
 
 
 def _holds(shape: TopoDS_Shape, points: np.ndarray) -> bool:
