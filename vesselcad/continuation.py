@@ -41,9 +41,10 @@ from .matching import (
     CAP_PX,
     LENGTH_WEIGHT,
     MIN_FORESHORTENING,
-    RADIUS_SIGMA,
     STEP_PX,
+    _cost_factor,
     _foreshortening_factor,
+    _radius_factor,
 )
 from .matching import OPEN_TAU as TAU  # a continuation runs while the error stays below TAU * tol
 from .splines import arc_length
@@ -397,13 +398,13 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
                     continue
                 ra = float(np.median(cha.radius[ia])) * mm_a
                 rb = float(np.median(chb.radius[ib])) * mm_b
-                agree = float(np.exp(-(np.log(max(ra, 1e-6) / max(rb, 1e-6)) / RADIUS_SIGMA) ** 2))
+                agree = _radius_factor(ra, rb)
                 if agree < MIN_RADIUS_AGREEMENT:
                     continue
                 fs = _foreshortening_factor(se.X[se.map_a[ia], se.map_b[ib]], la, lb, mm_a, mm_b)
                 if fs < MIN_FORESHORTENING:
                     continue
-                gain = min(la, lb) * (1.0 - cost / tol) * agree * fs
+                gain = min(la, lb) * _cost_factor(cost, tol) * agree * fs
                 cands.append(Continuation(gain, cost, ia, ib, err, (ca, ta, cb, tb)))
         cands.sort(key=lambda c: -c.gain)
         queue = []

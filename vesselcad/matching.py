@@ -61,6 +61,8 @@ OPEN_FACTOR = 0.8
 OPEN_TAU = 0.5
 #: Width (log of the radius ratio) of the gain factor for radius agreement between the views.
 RADIUS_SIGMA = 0.5
+#: Rate (per px of mean reconstruction error) of the gain factor ``exp(-COST_RATE * cost)``.
+COST_RATE = 6.0
 #: Shortest open-ended pair (px along each view).
 MIN_OPEN_PX = 16.0
 #: A pair's 3D length over its longer 2D length (mm at the isocentre) up to which it is
@@ -460,7 +462,7 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         if fs < MIN_FORESHORTENING:
             continue
         extra = len(pa.edges) + len(pb.edges) - 2
-        gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra) * fs
+        gain = min(pa.length, pb.length) * _cost_factor(cost, branch_tol_px) * (CHAIN_FACTOR ** extra) * fs
         cand = _Cand.closed(gain, cost, pa, pb, path)
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         cands.append(cand)
@@ -596,7 +598,7 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         fs = _foreshortening_factor(X[pi, pj], pa.s[ie], pb.s[je], mm_a, mm_b)
         if fs < MIN_FORESHORTENING:
             continue
-        gain = min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * OPEN_FACTOR * fs
+        gain = min(pa.s[ie], pb.s[je]) * _cost_factor(cost, tol) * OPEN_FACTOR * fs
         cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])], [], [],
                      list(pa.edges), list(pb.edges))
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
@@ -639,12 +641,27 @@ def _foreshortening_factor(points_mm: np.ndarray, length_a_px: float, length_b_p
 
 def _radius_agreement(c: _Cand, mm_a: float, mm_b: float) -> float:
     """Gain factor from the agreement of the two views' radii (mm at the isocentre) along the pair."""
+    pi, pj = c.path
+    return _radius_factor(float(np.median(c.pa.radius[pi])) * mm_a, float(np.median(c.pb.radius[pj])) * mm_b)
+
+
+def _radius_factor(ra_mm: float, rb_mm: float) -> float:
+    """Gain factor (0..1] from the two views' radii of a pair (mm at the isocentre)."""
     if RADIUS_SIGMA <= 0:
         return 1.0
-    pi, pj = c.path
-    ra = float(np.median(c.pa.radius[pi])) * mm_a
-    rb = float(np.median(c.pb.radius[pj])) * mm_b
-    return float(np.exp(-(np.log(max(ra, 1e-6) / max(rb, 1e-6)) / RADIUS_SIGMA) ** 2))
+    return float(np.exp(-(np.log(max(ra_mm, 1e-6) / max(rb_mm, 1e-6)) / RADIUS_SIGMA) ** 2))
+
+
+def _cost_factor(cost: float, tol: float) -> float:
+    """Gain factor (0..1] from a pair's mean reconstruction error ``cost`` (px) and its tolerance.
+
+    ``exp(-COST_RATE * cost)`` times the linear ramp ``1 - cost / tol``: the
+    right partner of a vessel reprojects to about 0.3-0.4 px along the whole
+    alignment, a wrong one that shares its epipolar band to about 0.5-0.6 px,
+    so a tenth of a pixel of mean error must weigh more than the ramp alone
+    gives it (docs/centreline2d.md, "Score").
+    """
+    return float(np.exp(-COST_RATE * cost)) * max(1.0 - cost / tol, 0.0)
 
 
 def _select_greedy(cands: list[_Cand]) -> tuple:
