@@ -285,7 +285,8 @@ def test_a_tenth_of_a_pixel_of_error_decides_between_two_partners():
     # them, and wrong pairings reproject to 0.5-0.6 px where the right ones reach 0.3-0.4 px.
     # With the gain linear in the error (1 - e / 3 px) 5 of the 14 landmark pairs triangulated
     # within 3 mm of a true landmark and 56 % of the paired length lay more than 1.5 mm off the
-    # truth centreline; with exp(-6 e) in the gain, 11 of 13 and 22 %.
+    # truth centreline; with exp(-0.8 e / e_ref) in the gain (e_ref ~ 0.27 px here), 10 of 13
+    # and 25 %.
     import warnings
 
     from scipy.spatial import cKDTree

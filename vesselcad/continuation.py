@@ -360,8 +360,11 @@ def sample_errors(va: CArmView, vb: CArmView, cha: Chains, chb: Chains, free_a: 
 
 def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarray,
                    used_b: np.ndarray, anchors: list[tuple[int, int, int, int]], tol: float,
-                   mm_a: float, mm_b: float) -> tuple[list[Continuation], list[tuple[int, int, int, int]]]:
+                   mm_a: float, mm_b: float, cost_rate: float = 0.0
+                   ) -> tuple[list[Continuation], list[tuple[int, int, int, int]]]:
     """Grow pairs from ``anchors`` (chain and position in view A, in view B) as far as the views agree.
+
+    ``cost_rate`` is the rate of the error factor of the gains (see ``matching._cost_factor``).
 
     ``se`` comes from :func:`sample_errors` (view A samples by view B
     samples; pass its transpose ``se.T`` to grow from view B). ``used_a``
@@ -404,7 +407,7 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
                 fs = _foreshortening_factor(se.X[se.map_a[ia], se.map_b[ib]], la, lb, mm_a, mm_b)
                 if fs < MIN_FORESHORTENING:
                     continue
-                gain = min(la, lb) * _cost_factor(cost, tol) * agree * fs
+                gain = min(la, lb) * _cost_factor(cost, tol, cost_rate) * agree * fs
                 cands.append(Continuation(gain, cost, ia, ib, err, (ca, ta, cb, tb)))
         cands.sort(key=lambda c: -c.gain)
         queue = []

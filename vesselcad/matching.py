@@ -61,8 +61,13 @@ OPEN_FACTOR = 0.8
 OPEN_TAU = 0.5
 #: Width (log of the radius ratio) of the gain factor for radius agreement between the views.
 RADIUS_SIGMA = 0.5
-#: Rate (per px of mean reconstruction error) of the gain factor ``exp(-COST_RATE * cost)``.
-COST_RATE = 6.0
+#: The gain factor of a pair's mean reconstruction error e is ``exp(-COST_SCALE * e / e_ref)``,
+#: e_ref the ``COST_REF_PERCENTILE`` percentile of all candidates' errors (the views' own noise:
+#: about 0.27 px with exact geometry and phase, more with motion or a miscalibrated C-arm).
+COST_SCALE = 0.8
+COST_REF_PERCENTILE = 10.0
+#: e_ref is at least this (px).
+COST_REF_MIN_PX = 0.1
 #: Shortest open-ended pair (px along each view).
 MIN_OPEN_PX = 16.0
 #: A pair's 3D length over its longer 2D length (mm at the isocentre) up to which it is
@@ -462,11 +467,15 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         if fs < MIN_FORESHORTENING:
             continue
         extra = len(pa.edges) + len(pb.edges) - 2
-        gain = min(pa.length, pb.length) * _cost_factor(cost, branch_tol_px) * (CHAIN_FACTOR ** extra) * fs
+        gain = (min(pa.length, pb.length) * _cost_factor(cost, branch_tol_px, 0.0) * (CHAIN_FACTOR ** extra)
+                * fs)
         cand = _Cand.closed(gain, cost, pa, pb, path)
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         cands.append(cand)
     cands += _open_candidates(view_a, view_b, paths_a, paths_b, ok_lm, branch_tol_px, mm_a, mm_b)
+    rate = _cost_rate([c.cost for c in cands])
+    for c in cands:
+        c.gain *= float(np.exp(-rate * c.cost))
     cands.sort(key=lambda c: -c.gain)
 
     accepted, map_ab, map_ba, only_a, only_b, used_a, used_b = _select(cands)
@@ -481,7 +490,7 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
             pieces = [_flip(q) for q in pieces[::-1]]
         pairs.extend(pieces)
     if continuation:
-        more = _continuations(view_a, view_b, ga, gb, pairs, branch_tol_px, mm_a, mm_b)
+        more = _continuations(view_a, view_b, ga, gb, pairs, branch_tol_px, mm_a, mm_b, rate)
         pairs.extend(more)
         used_a = used_a | {p.a for p in more}
         used_b = used_b | {p.b for p in more}
@@ -598,7 +607,7 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         fs = _foreshortening_factor(X[pi, pj], pa.s[ie], pb.s[je], mm_a, mm_b)
         if fs < MIN_FORESHORTENING:
             continue
-        gain = min(pa.s[ie], pb.s[je]) * _cost_factor(cost, tol) * OPEN_FACTOR * fs
+        gain = min(pa.s[ie], pb.s[je]) * _cost_factor(cost, tol, 0.0) * OPEN_FACTOR * fs
         cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])], [], [],
                      list(pa.edges), list(pb.edges))
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
@@ -652,16 +661,25 @@ def _radius_factor(ra_mm: float, rb_mm: float) -> float:
     return float(np.exp(-(np.log(max(ra_mm, 1e-6) / max(rb_mm, 1e-6)) / RADIUS_SIGMA) ** 2))
 
 
-def _cost_factor(cost: float, tol: float) -> float:
+def _cost_factor(cost: float, tol: float, rate: float) -> float:
     """Gain factor (0..1] from a pair's mean reconstruction error ``cost`` (px) and its tolerance.
 
-    ``exp(-COST_RATE * cost)`` times the linear ramp ``1 - cost / tol``: the
-    right partner of a vessel reprojects to about 0.3-0.4 px along the whole
-    alignment, a wrong one that shares its epipolar band to about 0.5-0.6 px,
-    so a tenth of a pixel of mean error must weigh more than the ramp alone
-    gives it (docs/centreline2d.md, "Score").
+    ``exp(-rate * cost)`` times the linear ramp ``1 - cost / tol``: with exact
+    geometry the right partner of a vessel reprojects to about 0.3-0.4 px along
+    the whole alignment, a wrong one that shares its epipolar band to about
+    0.5-0.6 px, so a tenth of a pixel of mean error must weigh more than the
+    ramp alone gives it; ``rate`` scales with the views' noise
+    (:func:`_cost_rate`, docs/centreline2d.md, "Score").
     """
-    return float(np.exp(-COST_RATE * cost)) * max(1.0 - cost / tol, 0.0)
+    return float(np.exp(-rate * cost)) * max(1.0 - cost / tol, 0.0)
+
+
+def _cost_rate(costs: list[float]) -> float:
+    """Rate of :func:`_cost_factor` for candidates with these mean errors (px)."""
+    if not costs:
+        return 0.0
+    ref = max(float(np.percentile(costs, COST_REF_PERCENTILE)), COST_REF_MIN_PX)
+    return COST_SCALE / ref
 
 
 def _select_greedy(cands: list[_Cand]) -> tuple:
@@ -749,7 +767,8 @@ def _select(cands: list[_Cand]) -> tuple:
 
 
 def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph,
-                   pairs: list[BranchPair], tol: float, mm_a: float, mm_b: float) -> list[BranchPair]:
+                   pairs: list[BranchPair], tol: float, mm_a: float, mm_b: float,
+                   cost_rate: float = 0.0) -> list[BranchPair]:
     """Pairs grown from the ends of ``pairs`` along both skeleton graphs (:mod:`vesselcad.continuation`)."""
     from . import continuation as cont
 
@@ -779,9 +798,11 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
     found: list[cont.Continuation] = []
     swap = lambda anc: [(cb, tb, ca, ta) for ca, ta, cb, tb in anc]  # noqa: E731
     for _round in range(4):
-        got, new = cont.continue_pairs(se, cha, chb, used_a, used_b, anchors, tol, mm_a, mm_b)
+        got, new = cont.continue_pairs(se, cha, chb, used_a, used_b, anchors, tol, mm_a, mm_b,
+                                         cost_rate)
         anchors = anchors + new
-        got_b, new_b = cont.continue_pairs(se.T, chb, cha, used_b, used_a, swap(anchors), tol, mm_b, mm_a)
+        got_b, new_b = cont.continue_pairs(se.T, chb, cha, used_b, used_a, swap(anchors), tol, mm_b,
+                                             mm_a, cost_rate)
         anchors = anchors + swap(new_b)
         found += got + [cont.Continuation(c.gain, c.cost, c.ib, c.ia, c.err, c.anchor) for c in got_b]
         if not got_b:
