@@ -227,11 +227,9 @@ def test_foreshortening_factor_follows_the_length_ratio():
     assert _foreshortening_factor(jitter, 40.0 / mm, 30.0 / mm, mm, mm) == pytest.approx(1.0)
 
 
-def test_pairings_that_zigzag_in_depth_are_not_taken():
-    # Coronary sinus phantoms seen at 0 and 30 degrees: many vessels share epipolar bands, and a
-    # wrong pairing reprojects as well as the right one. Without the foreshortening factor 46 %,
-    # 38 % and 53 % of the paired length of these three cases reconstructs more than 1.5 mm from
-    # the truth centreline (0.46 of it all; 0.23 with the factor); it must stay below 0.3.
+def _phantom_match(seed, kind):
+    """Match the truth-label graphs of a phantom's fullest frame; return (case, frame, match,
+    paired 3D length within 1.5 mm of the truth centreline, length beyond) in samples of 0.5 mm."""
     import warnings
 
     from scipy.spatial import cKDTree
@@ -239,27 +237,39 @@ def test_pairings_that_zigzag_in_depth_are_not_taken():
     from vesselcad.phantom import LABELS, generate_case
     from vesselcad.splines import resample_by_arclength
 
+    case = generate_case(seed, kind, n_frames=10, synchronized=True)
+    la, lb = case.run_a.labels, case.run_b.labels
+    i = int(np.argmax((la == LABELS["vessel"]).sum(axis=(1, 2))))
+    va, vb = case.run_a.view, case.run_b.view
+    on = off = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", vc.VesselcadWarning)
+        ga = vc.centreline_graph(la[i] == LABELS["vessel"], va, labels=la[i])
+        gb = vc.centreline_graph(lb[i] == LABELS["vessel"], vb, labels=lb[i])
+        m = vc.match_graphs(va, ga, vb, gb)
+        truth = cKDTree(np.vstack([resample_by_arclength(np.asarray(b["points"], float), 0.25)
+                                   for b in case.run_a.trees[i]["branches"] if len(b["points"]) > 1]))
+        for p in m.pairs:
+            try:
+                c3 = vc.intersect_centrelines(va, p.points_a_px, vb, p.points_b_px, method="epipolar")
+            except vc.VesselcadError:
+                continue
+            d, _ = truth.query(c3.sample_every(0.5))
+            off += float(np.sum(d > 1.5))
+            on += float(np.sum(d <= 1.5))
+    return case, i, m, on, off
+
+
+def test_pairings_that_zigzag_in_depth_are_not_taken():
+    # Coronary sinus phantoms seen at 0 and 30 degrees: many vessels share epipolar bands, and a
+    # wrong pairing reprojects as well as the right one. Without the foreshortening factor 46 %,
+    # 38 % and 53 % of the paired length of these three cases reconstructs more than 1.5 mm from
+    # the truth centreline (0.46 of it all; 0.23 with the factor); it must stay below 0.3.
     on = off = 0.0
     for seed in (1002, 1011, 1020):
-        case = generate_case(seed, "cs", n_frames=10, synchronized=True)
-        la, lb = case.run_a.labels, case.run_b.labels
-        i = int(np.argmax((la == LABELS["vessel"]).sum(axis=(1, 2))))
-        va, vb = case.run_a.view, case.run_b.view
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", vc.VesselcadWarning)
-            ga = vc.centreline_graph(la[i] == LABELS["vessel"], va, labels=la[i])
-            gb = vc.centreline_graph(lb[i] == LABELS["vessel"], vb, labels=lb[i])
-            m = vc.match_graphs(va, ga, vb, gb)
-            truth = cKDTree(np.vstack([resample_by_arclength(np.asarray(b["points"], float), 0.25)
-                                       for b in case.run_a.trees[i]["branches"] if len(b["points"]) > 1]))
-            for p in m.pairs:
-                try:
-                    c3 = vc.intersect_centrelines(va, p.points_a_px, vb, p.points_b_px, method="epipolar")
-                except vc.VesselcadError:
-                    continue
-                d, _ = truth.query(c3.sample_every(0.5))
-                off += float(np.sum(d > 1.5))
-                on += float(np.sum(d <= 1.5))
+        *_, on_k, off_k = _phantom_match(seed, "cs")
+        on += on_k
+        off += off_k
     assert on > 0 and off / (on + off) < 0.3
 
 
@@ -287,31 +297,8 @@ def test_a_tenth_of_a_pixel_of_error_decides_between_two_partners():
     # within 3 mm of a true landmark and 56 % of the paired length lay more than 1.5 mm off the
     # truth centreline; with exp(-0.8 e / e_ref) in the gain (e_ref ~ 0.27 px here), 10 of 13
     # and 25 %.
-    import warnings
-
-    from scipy.spatial import cKDTree
-
-    from vesselcad.phantom import LABELS, generate_case
-    from vesselcad.splines import resample_by_arclength
-
-    case = generate_case(1028, "rca", n_frames=10, synchronized=True)
-    la, lb = case.run_a.labels, case.run_b.labels
-    i = int(np.argmax((la == LABELS["vessel"]).sum(axis=(1, 2))))
-    va, vb = case.run_a.view, case.run_b.view
+    case, i, m, on, off = _phantom_match(1028, "rca")
     branches = case.run_a.trees[i]["branches"]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", vc.VesselcadWarning)
-        ga = vc.centreline_graph(la[i] == LABELS["vessel"], va, labels=la[i])
-        gb = vc.centreline_graph(lb[i] == LABELS["vessel"], vb, labels=lb[i])
-        m = vc.match_graphs(va, ga, vb, gb)
-        truth = cKDTree(np.vstack([resample_by_arclength(np.asarray(b["points"], float), 0.25)
-                                   for b in branches if len(b["points"]) > 1]))
-        on = off = 0.0
-        for p in m.pairs:
-            c3 = vc.intersect_centrelines(va, p.points_a_px, vb, p.points_b_px, method="epipolar")
-            d, _ = truth.query(c3.sample_every(0.5))
-            off += float(np.sum(d > 1.5))
-            on += float(np.sum(d <= 1.5))
     ends = np.array([np.asarray(b["points"], float)[j] for b in branches for j in (0, -1)])
     pts = np.array([lm.point_mm for lm in m.landmark_pairs])
     near = np.linalg.norm(pts[:, None] - ends[None], axis=-1).min(axis=1) < 3.0
