@@ -364,14 +364,13 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
                    ) -> tuple[list[Continuation], list[tuple[int, int, int, int]]]:
     """Grow pairs from ``anchors`` (chain and position in view A, in view B) as far as the views agree.
 
-    ``cost_rate`` is the rate of the error factor of the gains (see ``matching._cost_factor``).
-
     ``se`` comes from :func:`sample_errors` (view A samples by view B
     samples; pass its transpose ``se.T`` to grow from view B). ``used_a``
     and ``used_b`` (sample flags) are updated in place. The far end of each
     new pair, and every point where it passes a branch point in either view,
     become anchors in turn (the other branches there may continue from it);
-    they are returned with the new pairs.
+    they are returned with the new pairs. ``cost_rate`` is the rate of the
+    gains' error factor (``matching._cost_factor``; 0: the linear ramp only).
     """
     tau = TAU * tol
     out: list[Continuation] = []

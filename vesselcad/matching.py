@@ -467,12 +467,13 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         if fs < MIN_FORESHORTENING:
             continue
         extra = len(pa.edges) + len(pb.edges) - 2
-        gain = (min(pa.length, pb.length) * _cost_factor(cost, branch_tol_px, 0.0) * (CHAIN_FACTOR ** extra)
-                * fs)
+        gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra) * fs
         cand = _Cand.closed(gain, cost, pa, pb, path)
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         cands.append(cand)
     cands += _open_candidates(view_a, view_b, paths_a, paths_b, ok_lm, branch_tol_px, mm_a, mm_b)
+    # The error factor's rate depends on all candidates' errors: applied once they are known (the
+    # gains above carry the linear ramp of _cost_factor already).
     rate = _cost_rate([c.cost for c in cands])
     for c in cands:
         c.gain *= float(np.exp(-rate * c.cost))
@@ -607,7 +608,7 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         fs = _foreshortening_factor(X[pi, pj], pa.s[ie], pb.s[je], mm_a, mm_b)
         if fs < MIN_FORESHORTENING:
             continue
-        gain = min(pa.s[ie], pb.s[je]) * _cost_factor(cost, tol, 0.0) * OPEN_FACTOR * fs
+        gain = min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * OPEN_FACTOR * fs
         cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])], [], [],
                      list(pa.edges), list(pb.edges))
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
