@@ -6,6 +6,9 @@ segmentation labels. Its key points are triangulated for every frame pair
 (mid-point of the shortest segment between the two rays) and reprojected;
 the pair's error is the larger of the two 2D errors in mm at the isocentre.
 The pair with the least error is at the same cardiac and respiratory phase.
+A single key point sees only its own motion across the epipolar planes, so
+the vessels add their own evidence (:func:`epipolar_consistency`): a still
+tree crosses every plane through both sources equally often in both views.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ __all__ = [
     "find_keypoints",
     "error_matrix",
     "diagonal_mean",
+    "epipolar_consistency",
     "match_phase",
     "ecg_phase",
     "plot_error_matrix",
@@ -110,6 +114,11 @@ class PhaseMatch:
         The diagonal window the pair was chosen with.
     ecg : bool
         Whether the ECG restriction and weight were applied.
+    consistency : numpy.ndarray, shape (N_A, N_B), or None
+        :func:`epipolar_consistency` of the vessel masks of every pair (mean
+        difference of vessel crossings per epipolar line), None when not used.
+    vessel_weight : float
+        Millimetres added to a pair's score per unit of ``consistency`` (0: not used).
     """
 
     frame_a: int
@@ -133,6 +142,8 @@ class PhaseMatch:
     fill_b: np.ndarray | None = None
     window: int = 0
     ecg: bool = False
+    consistency: np.ndarray | None = None
+    vessel_weight: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary (without the matrix)."""
@@ -150,6 +161,9 @@ class PhaseMatch:
             "fill": None if self.fill_a is None else [round(float(self.fill_a[self.frame_a]), 3),
                                                       round(float(self.fill_b[self.frame_b]), 3)],
             "window": self.window, "ecg": self.ecg,
+            "vessel_consistency": None if self.consistency is None
+            else round(float(self.consistency[self.frame_a, self.frame_b]), 4),
+            "vessel_weight": self.vessel_weight,
             "warnings": list(self.warnings),
         }
 
@@ -425,6 +439,140 @@ def _fill(labels: np.ndarray) -> np.ndarray:
     return area / area.max()
 
 
+#: Sampling step along each epipolar line (px) of :func:`epipolar_consistency`.
+_LINE_STEP_PX = 0.7
+
+
+def _epipolar_lines(view_a: CArmView, view_b: CArmView, n_lines: int
+                    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None:
+    """Sample points of ``n_lines`` shared epipolar planes in each view.
+
+    The planes of the pencil through both sources are indexed by their angle
+    about the baseline, over the range both images see; each plane projects to
+    a straight line in each view. Returns per view ``(points (K, T, 2), inside
+    (K, T))``, or None when the two sources coincide.
+    """
+    sa, sb = view_a.source, view_b.source
+    base = sb - sa
+    if np.linalg.norm(base) < 1e-6:
+        return None
+    b = base / np.linalg.norm(base)
+    centre = 0.5 * (np.asarray(view_a.offset_mm, float) + np.asarray(view_b.offset_mm, float))
+    w = (centre - sa) - ((centre - sa) @ b) * b
+    radius = float(np.linalg.norm(w))
+    if radius < 1e-6:
+        return None
+    e1 = w / radius
+    e2 = np.cross(b, e1)
+    along = float((centre - sa) @ b)
+    limits = []
+    for v in (view_a, view_b):
+        corners = np.array([[0, 0], [v.cols - 1, 0], [0, v.rows - 1], [v.cols - 1, v.rows - 1]], float)
+        q = v.pixel_to_detector(corners) - sa
+        limits.append(np.arctan2(q @ e2, q @ e1))
+    lo = max(limits[0].min(), limits[1].min())
+    hi = min(limits[0].max(), limits[1].max())
+    if not hi > lo:
+        return None
+    kappa = np.linspace(lo, hi, n_lines + 2)[1:-1]
+    normal = np.cos(kappa)[:, None] * e1 + np.sin(kappa)[:, None] * e2
+    p1_3d = sa + along * b + radius * normal  # two points of each plane, near the heart
+    p2_3d = p1_3d + 80.0 * b
+    out = []
+    for v in (view_a, view_b):
+        p1, p2 = v.project(p1_3d), v.project(p2_3d)
+        d = p2 - p1
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        # Clip each line to the image rectangle (slab method), then sample it evenly.
+        lo_t = np.full(n_lines, -np.inf)
+        hi_t = np.full(n_lines, np.inf)
+        for k, size in ((0, v.cols), (1, v.rows)):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t0 = (-0.5 - p1[:, k]) / d[:, k]
+                t1 = (size - 0.5 - p1[:, k]) / d[:, k]
+            flat = np.abs(d[:, k]) < 1e-12
+            inside_k = (p1[:, k] >= -0.5) & (p1[:, k] <= size - 0.5)
+            t_lo = np.where(flat, np.where(inside_k, -np.inf, np.inf), np.minimum(t0, t1))
+            t_hi = np.where(flat, np.where(inside_k, np.inf, -np.inf), np.maximum(t0, t1))
+            lo_t, hi_t = np.maximum(lo_t, t_lo), np.minimum(hi_t, t_hi)
+        n = int(np.ceil(np.hypot(v.cols, v.rows) / _LINE_STEP_PX)) + 1
+        t = lo_t[:, None] + _LINE_STEP_PX * np.arange(n)[None, :]
+        inside = (t <= hi_t[:, None]) & np.isfinite(t)
+        pts = p1[:, None, :] + np.where(inside, t, 0.0)[..., None] * d[:, None, :]
+        out.append((pts, inside))
+    return out[0], out[1]
+
+
+def _crossings(mask: np.ndarray, pts: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """Vessel crossings of every epipolar line in every frame: (N, K) run counts."""
+    n, h, w = mask.shape
+    c = np.clip(np.rint(pts[..., 0]).astype(np.intp), 0, w - 1)
+    r = np.clip(np.rint(pts[..., 1]).astype(np.intp), 0, h - 1)
+    s = mask[:, r, c] & inside[None]
+    # Along each line, close one-sample gaps and drop one-sample runs (label noise).
+    pad = np.zeros(s.shape[:2] + (1,), bool)
+    left, right = np.concatenate([pad, s[..., :-1]], 2), np.concatenate([s[..., 1:], pad], 2)
+    s = s | (left & right)
+    left, right = np.concatenate([pad, s[..., :-1]], 2), np.concatenate([s[..., 1:], pad], 2)
+    s = s & (left | right)
+    starts = s[..., 1:] & ~s[..., :-1]
+    return starts.sum(axis=2) + s[..., 0]
+
+
+def epipolar_consistency(view_a: CArmView, labels_a: Any, view_b: CArmView, labels_b: Any,
+                         *, n_lines: int = 256) -> np.ndarray:
+    """How well the vessel masks of every frame pair agree along shared epipolar lines.
+
+    Each plane through both X-ray sources projects to one line in each view,
+    and a 3D vessel tree crosses it equally often in both projections: the
+    number of vessel crossings along an epipolar line is the same in both
+    views of a still tree (apart from overlaps and vessels leaving the
+    field). It changes where a vessel turns back within the plane pencil or
+    ends, and those places move between the planes when the heart is at
+    another cardiac or respiratory phase in the two frames, along the whole
+    tree and not only at the one stationary key point. The measure is the
+    mean absolute difference of the crossing counts over ``n_lines`` planes
+    spanning the field both views see (0 for a perfect pair).
+
+    Parameters
+    ----------
+    view_a, view_b : CArmView
+        Geometry of the two runs.
+    labels_a, labels_b : array_like, shape (N, H, W) or (H, W)
+        Segmentation labels per frame (vessel = 1).
+    n_lines : int
+        Number of epipolar planes sampled (>= 8).
+
+    Returns
+    -------
+    numpy.ndarray, shape (N_A, N_B)
+        Mean crossing-count difference per line for every frame pair.
+
+    Raises
+    ------
+    ArgumentError
+        Bad labels or ``n_lines``; views whose sources coincide or whose fields
+        share no epipolar plane.
+    """
+    if isinstance(n_lines, bool) or not isinstance(n_lines, (int, np.integer)) or n_lines < 8:
+        raise ArgumentError(f"n_lines: expected an integer >= 8, got {n_lines!r}")
+    la, lb = _check_labels(labels_a, "labels_a"), _check_labels(labels_b, "labels_b")
+    for name, lab, v in (("labels_a", la, view_a), ("labels_b", lb, view_b)):
+        if not isinstance(v, CArmView):
+            raise ArgumentError(f"view for {name}: expected a CArmView, got {type(v).__name__}")
+        if lab.shape[1:] != (v.rows, v.cols):
+            raise ArgumentError(f"{name}: frames of {lab.shape[1:]} do not match the view's "
+                                f"{v.rows} x {v.cols} pixels")
+    lines = _epipolar_lines(view_a, view_b, int(n_lines))
+    if lines is None:
+        raise ArgumentError("view_a/view_b: the two views share no epipolar planes (same source "
+                            "position, or fields that see no common plane)")
+    (pa, ia), (pb, ib) = lines
+    na = _crossings(la == _VESSEL, pa, ia).astype(np.float32)
+    nb = _crossings(lb == _VESSEL, pb, ib).astype(np.float32)
+    return np.abs(na[:, None, :] - nb[None, :, :]).mean(axis=2).astype(np.float64)
+
+
 def match_phase(
     run_a: XARun,
     run_b: XARun,
@@ -434,9 +582,10 @@ def match_phase(
     objects: str | Sequence[str] = "auto",
     min_contrast: float = 0.5,
     prefer_fill: float = 0.9,
-    use_ecg: bool = True,
+    use_ecg: bool | None = None,
     ecg_tolerance: float = 0.06,
     ecg_weight: float = 10.0,
+    vessel_weight: float = 10.0,
     pair: tuple[int, int] | None = None,
     window: int | None = None,
 ) -> PhaseMatch:
@@ -461,11 +610,15 @@ def match_phase(
         a frame in wash-in or wash-out can keep 60-85 % of the area while a
         whole proximal or distal part is empty, and a vessel missing in one
         view cannot be reconstructed (1 or above: off).
-    use_ecg : bool
+    use_ecg : bool or None
         When both runs carry ECG R-waves (RWavePointer), only pairs whose ECG
         cardiac phases (:func:`ecg_phase`) differ by at most ``ecg_tolerance``
         (cycle fraction) are eligible, if any such pair has key points, and
         the phase difference is added to the score with ``ecg_weight``.
+        None (default): only when the vessel term (``vessel_weight``) is not
+        used. R-waves are stored to the nearest frame, so the ECG phase of a
+        frame is off by 0.01-0.03 cycle, up to 1-2 mm of systolic motion; the
+        vessels themselves tell the phase better (docs/phase.md).
     ecg_tolerance : float
         Largest ECG phase difference of an eligible pair, in (0, 0.5].
     ecg_weight : float
@@ -474,6 +627,14 @@ def match_phase(
         an in-phase one to win. The key point alone constrains one direction
         of motion, so among pairs within the tolerance it would otherwise
         often pick one that is off in cardiac phase but agrees by coincidence.
+    vessel_weight : float
+        Millimetres added to a pair's score per unit of
+        :func:`epipolar_consistency` of its vessel masks (mean difference of
+        vessel crossings per epipolar line; >= 0, 0: off). A single key point
+        sees only its own motion across the epipolar planes; the vessels show
+        the motion of the whole tree. At 10, a pair whose masks differ by one
+        crossing on a tenth of the lines must agree 1 mm better at the key
+        point to win. Used when the labels of both runs hold vessel pixels.
     pair : (int, int), optional
         Force this frame pair (its error is still reported).
     window : int, optional
@@ -482,8 +643,8 @@ def match_phase(
         constrains only its motion across the epipolar plane, so some pair at
         another phase often agrees by coincidence; its neighbours do not.
         ``window=0`` is the paper's choice by the single pair's error. None
-        (default): 0 when the ECG restriction applies (the ECG then fixes the
-        cardiac phase and the pair's own error the rest), else 4.
+        (default): 0 when the vessel term or the ECG restriction applies (they
+        fix the phase along the whole tree, resp. the cardiac phase), else 4.
 
     Returns
     -------
@@ -511,6 +672,10 @@ def match_phase(
         raise ArgumentError(f"ecg_tolerance: expected a cycle fraction in (0, 0.5], got {ecg_tolerance}")
     if not ecg_weight >= 0.0:
         raise ArgumentError(f"ecg_weight: expected mm per cycle >= 0, got {ecg_weight}")
+    if not (np.isfinite(vessel_weight) and vessel_weight >= 0.0):
+        raise ArgumentError(f"vessel_weight: expected mm >= 0, got {vessel_weight}")
+    if use_ecg is not None and not isinstance(use_ecg, (bool, np.bool_)):
+        raise ArgumentError(f"use_ecg: expected True, False or None, got {use_ecg!r}")
     if not prefer_fill >= 0.0:
         raise ArgumentError(f"prefer_fill: expected a share >= 0, got {prefer_fill}")
     if objects == "auto":
@@ -554,8 +719,14 @@ def match_phase(
     if prefer_fill <= 1.0 and (allowed & full_a[:, None] & full_b[None, :]).any():
         elig_a, elig_b = elig_a & full_a, elig_b & full_b
         allowed &= full_a[:, None] & full_b[None, :]
+    consistency = None
+    if vessel_weight > 0.0 and (la == _VESSEL).any() and (lb == _VESSEL).any():
+        try:
+            consistency = epipolar_consistency(run_a.view, la, run_b.view, lb)
+        except ArgumentError as exc:
+            warnings_.append(f"vessel consistency not used: {exc}")
     ecg_diff = None
-    if use_ecg:
+    if use_ecg or (use_ecg is None and consistency is None):
         pa, pb = ecg_phase(run_a), ecg_phase(run_b)
         if pa is not None and pb is not None:
             d = np.abs(pa[:, None] - pb[None, :])
@@ -567,12 +738,14 @@ def match_phase(
             else:
                 warnings_.append("ECG phases leave no pair with key points; ECG restriction ignored")
     if window is None:
-        window = 0 if ecg_diff is not None else 4
+        window = 0 if ecg_diff is not None or consistency is not None else 4
     # A short run cannot hold a window of window + 1 valid pairs on a diagonal: shrink it.
     window = min(int(window), (min(run_a.n_frames, run_b.n_frames) - 1) // 2)
     score = diagonal_mean(matrix, window)
     if ecg_diff is not None:
         score = score + ecg_weight * ecg_diff
+    if consistency is not None:
+        score = score + vessel_weight * consistency
     allowed &= np.isfinite(score)
     if not allowed.any():
         if not np.isfinite(matrix).any():
@@ -620,6 +793,7 @@ def match_phase(
         eligible_a=elig_a, eligible_b=elig_b, runner_up=runner, runner_up_error_mm=runner_err,
         margin_mm=margin, confidence=confidence, point_mm=np.asarray(rec.points_mm), warnings=warnings_,
         fill_a=fill_a, fill_b=fill_b, window=window, ecg=ecg_diff is not None,
+        consistency=consistency, vessel_weight=float(vessel_weight) if consistency is not None else 0.0,
     )
 
 
