@@ -798,32 +798,41 @@ def match_phase(
 
 
 def plot_error_matrix(match: PhaseMatch, path: str | os.PathLike, *, title: str = "") -> Path:
-    """Heat map of the error matrix (like the paper's Fig. 2b), chosen pair marked. Atomic PNG."""
+    """Heat map of the error matrix (like the paper's Fig. 2b), chosen pair marked. Atomic PNG.
+
+    With the vessel term (``match.consistency``), a second panel shows the
+    vessel masks' epipolar consistency of every pair, which the choice also weighs.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    m = match.matrix
-    fig, ax = plt.subplots(figsize=(6.4, 5.2))
-    finite = m[np.isfinite(m)]
-    vmax = float(np.percentile(finite, 95)) if finite.size else 1.0
-    im = ax.imshow(m, cmap="viridis", vmin=0.0, vmax=vmax, origin="upper", aspect="auto",
-                   interpolation="nearest")
-    fig.colorbar(im, ax=ax, label="reconstruction error (mm)")
+    panels = [(match.matrix, "reconstruction error (mm)",
+               title or f"motion phase error matrix ({', '.join(match.objects)}); grey: not eligible")]
+    if match.consistency is not None:
+        panels.append((match.consistency, "vessel crossings differing per epipolar line",
+                       f"vessel consistency (x {match.vessel_weight:g} mm in the score)"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.4 * len(panels), 5.2), squeeze=False)
     shade = ~(match.eligible_a[:, None] & match.eligible_b[None, :])
-    ax.imshow(np.ma.masked_where(~shade, np.ones_like(m)), cmap="Greys", alpha=0.35, vmin=0, vmax=1,
-              aspect="auto", interpolation="nearest")
-    ax.plot(match.frame_b, match.frame_a, "o", ms=12, mfc="none", mec="red", mew=2,
-            label=f"chosen ({match.frame_a}, {match.frame_b}): {match.error_mm:.3f} mm")
-    if match.runner_up is not None:
-        ax.plot(match.runner_up[1], match.runner_up[0], "x", ms=9, color="white", mew=2,
-                label=f"runner-up {match.runner_up}: {match.runner_up_error_mm:.3f} mm")
-    ax.set_xlabel("frame of run B")
-    ax.set_ylabel("frame of run A")
-    ax.set_title(title or f"motion phase error matrix ({', '.join(match.objects)}); grey: not eligible",
-                 fontsize=9)
-    ax.legend(fontsize=8, loc="lower right")
+    for ax, (m, label, heading) in zip(axes[0], panels, strict=True):
+        finite = m[np.isfinite(m)]
+        vmax = float(np.percentile(finite, 95)) if finite.size else 1.0
+        im = ax.imshow(m, cmap="viridis", vmin=0.0, vmax=vmax, origin="upper", aspect="auto",
+                       interpolation="nearest")
+        fig.colorbar(im, ax=ax, label=label)
+        ax.imshow(np.ma.masked_where(~shade, np.ones_like(m)), cmap="Greys", alpha=0.35, vmin=0, vmax=1,
+                  aspect="auto", interpolation="nearest")
+        value = m[match.frame_a, match.frame_b]
+        ax.plot(match.frame_b, match.frame_a, "o", ms=12, mfc="none", mec="red", mew=2,
+                label=f"chosen ({match.frame_a}, {match.frame_b}): {value:.3f}")
+        if match.runner_up is not None:
+            ax.plot(match.runner_up[1], match.runner_up[0], "x", ms=9, color="white", mew=2,
+                    label=f"runner-up {match.runner_up}: {m[match.runner_up]:.3f}")
+        ax.set_xlabel("frame of run B")
+        ax.set_ylabel("frame of run A")
+        ax.set_title(heading, fontsize=9)
+        ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
