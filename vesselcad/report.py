@@ -254,6 +254,9 @@ def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_
     rep_txt = (f"{e['mean_px']:.2f} ± {e['sd_px']:.2f} px, max {e['max_px']:.2f} px "
                f"({e['mean_mm']:.3f} ± {e['sd_mm']:.3f} mm, max {e['max_mm']:.3f} mm)" if e else "n/a")
     ph = rec.phase
+    vessel_txt = ("" if ph.consistency is None else
+                  f" and the vessels' epipolar consistency ({ph.consistency[ph.frame_a, ph.frame_b]:.3f} "
+                  "crossings differing per epipolar line)")
     srcs = " and ".join(html.escape(s or "(in memory)") for s in rec.sources)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>vesselcad reconstruction</title>
@@ -266,7 +269,7 @@ img {{ max-width: 100%; }} #view3d {{ border: 1px solid #aaa; cursor: grab; }}
 </style></head><body>
 <h1>vesselcad reconstruction</h1>
 <p>Runs: {srcs}. Chosen frames: <b>A {ph.frame_a}</b>, <b>B {ph.frame_b}</b> by
-{html.escape(', '.join(ph.objects) or 'given pair')} (phase error {ph.error_mm:.3f} mm, confidence
+{html.escape(', '.join(ph.objects) or 'given pair')}{vessel_txt} (phase error {ph.error_mm:.3f} mm, confidence
 {ph.confidence:.2f}). Branches reconstructed: <b>{len(rec.ok_branches)} of {len(rec.branches)}</b>
 matched pairs ({len(rec.graphs[0].branches)} and {len(rec.graphs[1].branches)} branches in the 2D graphs).
 Reprojection error: <b>{rep_txt}</b>. Solid: {solid_txt}. Geometry refinement: {ref_txt}.</p>
@@ -279,7 +282,8 @@ Reprojection error: <b>{rep_txt}</b>. Solid: {solid_txt}. Geometry refinement: {
 <div id="view3d-status">loading…</div><div>Shown: {html.escape(mesh_kind)} (red), centrelines (blue).
 LPS frame, seen from the front, head up.</div></div>
 <div><h2>Motion phase</h2>
-<img id="phase" alt="phase error matrix" src="data:image/png;base64,{_png_b64(phase_png)}" width="560"></div>
+<img id="phase" alt="phase error matrix" src="data:image/png;base64,{_png_b64(phase_png)}"
+ width="{1120 if ph.consistency is not None else 560}"></div>
 </div>
 <h2>Branches</h2>
 <table><tr><th>id</th><th>2D branches A / B</th><th>parent</th><th>length mm</th>
