@@ -509,11 +509,16 @@ def _crossings(mask: np.ndarray, pts: np.ndarray, inside: np.ndarray) -> np.ndar
     c = np.clip(np.rint(pts[..., 0]).astype(np.intp), 0, w - 1)
     r = np.clip(np.rint(pts[..., 1]).astype(np.intp), 0, h - 1)
     s = mask[:, r, c] & inside[None]
+
+    def neighbours(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        left, right = np.zeros_like(x), np.zeros_like(x)
+        left[..., 1:], right[..., :-1] = x[..., :-1], x[..., 1:]
+        return left, right
+
     # Along each line, close one-sample gaps and drop one-sample runs (label noise).
-    pad = np.zeros(s.shape[:2] + (1,), bool)
-    left, right = np.concatenate([pad, s[..., :-1]], 2), np.concatenate([s[..., 1:], pad], 2)
+    left, right = neighbours(s)
     s = s | (left & right)
-    left, right = np.concatenate([pad, s[..., :-1]], 2), np.concatenate([s[..., 1:], pad], 2)
+    left, right = neighbours(s)
     s = s & (left | right)
     starts = s[..., 1:] & ~s[..., :-1]
     return starts.sum(axis=2) + s[..., 0]
@@ -557,11 +562,11 @@ def epipolar_consistency(view_a: CArmView, labels_a: Any, view_b: CArmView, labe
     if isinstance(n_lines, bool) or not isinstance(n_lines, (int, np.integer)) or n_lines < 8:
         raise ArgumentError(f"n_lines: expected an integer >= 8, got {n_lines!r}")
     la, lb = _check_labels(labels_a, "labels_a"), _check_labels(labels_b, "labels_b")
-    for name, lab, v in (("labels_a", la, view_a), ("labels_b", lb, view_b)):
+    for name, lab, v, vname in (("labels_a", la, view_a, "view_a"), ("labels_b", lb, view_b, "view_b")):
         if not isinstance(v, CArmView):
-            raise ArgumentError(f"view for {name}: expected a CArmView, got {type(v).__name__}")
+            raise ArgumentError(f"{vname}: expected a CArmView, got {type(v).__name__}")
         if lab.shape[1:] != (v.rows, v.cols):
-            raise ArgumentError(f"{name}: frames of {lab.shape[1:]} do not match the view's "
+            raise ArgumentError(f"{name}: frames of {lab.shape[1:]} do not match {vname}'s "
                                 f"{v.rows} x {v.cols} pixels")
     lines = _epipolar_lines(view_a, view_b, int(n_lines))
     if lines is None:
