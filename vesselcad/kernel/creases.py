@@ -26,7 +26,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Curve2d
-from OCP.BRepCheck import BRepCheck_Analyzer
 from OCP.BRepFilletAPI import BRepFilletAPI_MakeFillet
 from OCP.BRepGProp import BRepGProp_Face
 from OCP.GCPnts import GCPnts_AbscissaPoint
@@ -37,6 +36,7 @@ from OCP.TopoDS import TopoDS, TopoDS_Edge, TopoDS_Face
 from OCP.TopTools import TopTools_IndexedDataMapOfShapeListOfShape
 
 from ..errors import ArgumentError
+from .nurbs import is_valid
 
 if TYPE_CHECKING:
     from .solid import FaceTag, VesselSolid
@@ -208,7 +208,7 @@ def _fillet(shape: Any, creases: list[Crease], fraction: float) -> tuple[Any, An
     if not op.IsDone():
         return None
     out = op.Shape()
-    if _count_solids(out) != 1 or not BRepCheck_Analyzer(out).IsValid():
+    if _count_solids(out) != 1 or not is_valid(out):
         return None
     before, after = shape_volume(shape), shape_volume(out)
     # the junction edges are concave seen from the fluid: a fillet adds a little fluid
