@@ -776,6 +776,55 @@ def test_a_branch_the_general_fuse_loses_is_added_back(monkeypatch):
     np.testing.assert_array_equal(got, _inside_y(sample))
 
 
+def _y_pipes():
+    from vesselcad.kernel.pipes import branch_pipe
+
+    return [branch_pipe(s["id"], s["name"], s["parent"], s["spine"], s["radius"], end=s.get("end", "flat"))
+            for s in _y_tree().pipe_specs()]
+
+
+def test_pipe_tube_distance_is_the_capped_cylinder():
+    right = _y_pipes()[2]
+    a, r = right.start, 1.4
+    length = float(np.linalg.norm(right.end - a))
+    side = np.array([0.0, 1.0, 0.0])  # normal to the Y's plane
+    pts = np.array([a + 10 * RIGHT + 1.0 * side, a + 10 * RIGHT + 3 * side, a + (length + 2) * RIGHT,
+                    a + (length + 0.5) * RIGHT + 0.5 * side, a - 1.0 * RIGHT, a + 30 * side])
+    want = [1.0 - r, 3 - r, 2.0, 0.5, 1.0, np.inf]
+    np.testing.assert_allclose(right.tube_distance(pts), want, atol=0.02)
+
+
+def test_rings_tell_a_whole_branch_from_a_stub():
+    # OCCT has returned valid unions that kept only a stub of a branch's wall near its
+    # junction: simulate one by cutting the Y's right branch 5 mm past the main vessel.
+    from OCP.BRepAlgoAPI import BRepAlgoAPI_Cut
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
+    from OCP.gp import gp_Pnt
+    from OCP.TopAbs import TopAbs_FACE
+    from OCP.TopoDS import TopoDS
+
+    from vesselcad.kernel.solid import FUZZY_MM, _general_fuse, _History, _missing, _rings_held, _subshapes
+
+    pipes = _y_pipes()
+    op = _general_fuse([p.solid for p in pipes], FUZZY_MM)
+    history = _History()
+    history.ops.append(op)
+
+    def walls(shape, p):
+        faces = {hash(f): f for f in _subshapes(shape, TopAbs_FACE)}
+        return [TopoDS.Face_s(faces[hash(f)]) for w in p.walls for f in history.images(w) if hash(f) in faces]
+
+    union = op.Shape()
+    assert all(_rings_held(p, walls(union, p), pipes) for p in pipes)
+    assert _missing(union, pipes, history) == []
+    cut = BRepAlgoAPI_Cut(union, BRepPrimAPI_MakeBox(gp_Pnt(-40, -10, -10), gp_Pnt(-7, 10, 60)).Shape())
+    history.ops.append(cut)
+    stub = cut.Shape()
+    assert walls(stub, pipes[2])  # a piece of its wall is still there
+    assert [_rings_held(p, walls(stub, p), pipes) for p in pipes] == [True, True, False]
+    assert _missing(stub, pipes, history) == [2]
+
+
 def test_a_tree_with_two_roots_keeps_the_larger_and_says_why():
     y = [
         {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),

@@ -63,6 +63,7 @@ _POLE_RADIUS = np.array([1.0, np.sqrt(2.0)] * 4 + [1.0])
 _WEIGHTS = np.array([1.0, np.sqrt(0.5)] * 4 + [1.0])
 _U_KNOTS = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
 _U_MULTS = np.array([3, 2, 2, 2, 3])
+_RING_U = np.arange(0.25, 4.0, 0.5)  # 8 wall parameters round a section, off the seam and the knots
 
 
 def rotation_minimizing_normals(points: np.ndarray, tangents: np.ndarray) -> np.ndarray:
@@ -588,9 +589,14 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
 
     # probe points on the axis, clear of the start (inside the parent) and the end cap
     lo, hi = a + min(3.0 * r0, 0.5 * (b - a)), b - min(r1, 0.25 * (b - a))
-    probes = spine(np.linspace(lo, hi, 3) if hi > lo else np.full(3, 0.5 * (a + b)))
+    at = np.linspace(lo, hi, 3) if hi > lo else np.full(3, 0.5 * (a + b))
+    # round each probe, wall points (U, V = spine parameter) for the union's cheap check
+    rings_uv = np.stack(np.broadcast_arrays(_RING_U[None, :], at[:, None]), axis=-1)
+    rings = np.array([[surface.Value(float(u), float(v)).Coord() for u, v in ring] for ring in rings_uv])
+    s_axis = np.linspace(a, b, max(int(np.ceil((b - a) / 0.25)), 2) + 1)
     return BranchPipe(branch_id, name, parent, solid, walls, cap0, cap1, spine(a), spine(b),
-                      unit(d(a)), unit(d(b)), r0, r1, volume, probes, end)
+                      unit(d(a)), unit(d(b)), r0, r1, volume, spine(at), end, rings_uv, rings,
+                      spine(s_axis), np.ravel(radius(s_axis)))
 
 
 def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int,
