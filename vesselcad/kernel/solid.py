@@ -129,6 +129,7 @@ class BranchPipe:
     axis: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
     axis_radius: np.ndarray = field(default_factory=lambda: np.empty(0))
     _own: np.ndarray | None = field(default=None, repr=False, compare=False)
+    _axis_tree: Any = field(default=None, repr=False, compare=False)
 
     @property
     def wall(self) -> TopoDS_Face:
@@ -158,8 +159,10 @@ class BranchPipe:
         points = np.asarray(points, float).reshape(-1, 3)
         if not len(self.axis):
             return np.full(len(points), np.inf)
+        if self._axis_tree is None:
+            self._axis_tree = cKDTree(self.axis)
         reach = float(self.axis_radius.max()) + 2.0
-        dist, idx = cKDTree(self.axis).query(points, distance_upper_bound=reach)
+        dist, idx = self._axis_tree.query(points, distance_upper_bound=reach)
         far = ~np.isfinite(dist)
         idx = np.where(far, 0, idx)
         sdf = np.where(far, np.inf, dist - self.axis_radius[idx])
