@@ -166,3 +166,18 @@ def test_children_start_on_their_parent_in_every_frame(case):
             gap = np.linalg.norm(parent - np.asarray(b["points"][0]), axis=1).min()
             assert gap < 0.6  # parent polyline stored every 1 mm; the start lies on its curve
             assert 0 <= b["parent_s_mm"] <= len(parent) + 1
+
+
+def test_twigs_set_the_number_of_small_side_branches():
+    def names(twigs):
+        case = generate_case(5, "lca", n_frames=1, rows=64, cols=64, twigs=twigs)
+        return [b["name"] for b in case.run_a.trees[0]["branches"]]
+
+    named = names(0)
+    assert named and not any("-t" in n for n in named)  # the named vessels only
+    default, many = names(None), names(30)
+    assert default[: len(named)] == named and any("-t" in n for n in default)
+    assert len(named) < len(default) < len(many) <= 30
+    for bad in (-1, 31, 2.5, "5"):
+        with pytest.raises(vc.ArgumentError, match="twigs"):
+            generate_case(5, "lca", n_frames=1, rows=64, cols=64, twigs=bad)

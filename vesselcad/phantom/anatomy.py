@@ -402,13 +402,19 @@ def _twigs(tb: _TreeBuilder, rng: np.random.Generator, n: int) -> None:
                  rng.uniform(12, 30), (0.5, 0.6), 0.8)
 
 
-def make_anatomy(rng: np.random.Generator, kind: str) -> Anatomy:
-    """Random but anatomically plausible tree and devices for ``kind`` in ANATOMIES."""
+def make_anatomy(rng: np.random.Generator, kind: str, twigs: int | None = None) -> Anatomy:
+    """Random but anatomically plausible tree and devices for ``kind`` in ANATOMIES.
+
+    ``twigs`` small side branches are added to the named vessels (default: 3 to 8,
+    drawn; at most 30 vessels in all). Giving it changes the random stream after
+    the tree, so the rest of a case differs from the default's.
+    """
     heart = _make_heart(rng)
     tb = _TreeBuilder(heart, rng)
     builder = {"lca": _lca, "rca": _rca, "cs": _cs}[kind]
     ostium = builder(tb, rng)
-    _twigs(tb, rng, int(rng.integers(3, 9)))
+    drawn = int(rng.integers(3, 9))  # drawn always: the default cases stay as they were
+    _twigs(tb, rng, drawn if twigs is None else int(twigs))
     vessels = tb.vessels
     anatomy = Anatomy(kind, heart, vessels)
     H = heart

@@ -378,6 +378,7 @@ def generate_case(
     bits: int = 8,
     miscalibration_deg: float = 0.0,
     table_shift_mm: float = 0.0,
+    twigs: int | None = None,
     progress: bool = False,
 ) -> PhantomCase:
     """Generate a seeded biplane phantom case (deterministic for a given seed and options).
@@ -406,6 +407,9 @@ def generate_case(
         headers (``header_view_*``); the images follow the true views.
     table_shift_mm : float
         Length of a random patient/table shift between run A and run B.
+    twigs : int, optional
+        Small side branches added to the named vessels (default: 3 to 8, drawn;
+        the tree holds at most 30 vessels). Bigger trees for benchmarks.
     progress : bool
         Show a progress bar.
 
@@ -423,11 +427,13 @@ def generate_case(
         raise ArgumentError(f"fps: expected > 0, got {fps}")
     if not 0 <= miscalibration_deg <= 10:
         raise ArgumentError(f"miscalibration_deg: expected 0..10, got {miscalibration_deg}")
+    if twigs is not None and not (isinstance(twigs, int | np.integer) and 0 <= twigs <= 30):
+        raise ArgumentError(f"twigs: expected an integer 0..30 or None, got {twigs!r}")
     rng = np.random.default_rng([int(seed), 0x7E55E1])
     if views is None:
         views = default_views(anatomy, rows, cols)
     view_a, view_b = views
-    anat = make_anatomy(rng, anatomy)
+    anat = make_anatomy(rng, anatomy, twigs)
     motion = random_motion(rng)
     hr_a = rng.uniform(55, 100)
     resp_a = rng.uniform(3.5, 5.5)
