@@ -825,6 +825,80 @@ def test_rings_tell_a_whole_branch_from_a_stub():
     assert _missing(stub, pipes, history) == [2]
 
 
+def test_ear_clip_triangulates_a_concave_polygon():
+    from vesselcad.kernel.solid import _ear_clip
+
+    ell = np.array([[0, 0], [4, 0], [4, 1], [1, 1], [1, 3], [0, 3]], float)  # an L, area 6
+    for poly in (ell, ell[::-1]):  # either winding
+        tris = _ear_clip(poly)
+        assert tris.shape == (4, 3)
+        a, b, c = (poly[tris[:, k]] for k in range(3))
+        signed = 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+        assert np.all(signed > 0) and signed.sum() == pytest.approx(6.0)
+    assert _ear_clip(ell[:2]) is None
+
+
+def test_a_face_the_mesher_leaves_empty_is_closed_from_its_neighbours():
+    # OCCT's mesher left a tiny sliver of an end disc (8e-6 mm², phantom rca 3107 with 30
+    # twigs) without triangles: the export closes such a planar face from its boundary as
+    # the neighbouring wall discretized it. Simulated on the Y's inlet disc.
+    from OCP.BRep import BRep_Builder
+
+    solid = _y_tree().solid()
+    whole = solid.to_trimesh()
+    inlet = next(f for f, t in solid.faces if t.role == "inlet")
+    BRep_Builder().UpdateFace(inlet, None)  # drop its triangles only
+    verts, tris, branch, role = solid._collect_triangles()
+    mesh = trimesh.Trimesh(verts, tris)
+    mesh.merge_vertices()
+    assert mesh.is_watertight
+    assert mesh.volume == pytest.approx(whole.volume, rel=1e-9)
+    disc = trimesh.Trimesh(verts, tris[role == 1]).area
+    assert disc == pytest.approx(np.pi * 2.0**2, rel=0.01)
+
+
+def test_a_vessel_that_ends_inside_itself_keeps_its_end_buried():
+    # phantom rca 3104 with 30 twigs: the root's distal end came back onto its own wall,
+    # and the union of its two pieces had no end disc left, which lost the whole tree.
+    # Here a vessel of r = 1.5 runs along x, loops up and back, and comes straight down
+    # onto its own axis at x = 20: the end disc is inside it, and what the loop adds is
+    # the tube less half a bicylinder (8 r^3 / 3, two cylinders of one radius at right
+    # angles, the second reaching the first's axis).
+    r = 1.5
+    t = np.linspace(0, 1, 60)
+    th = np.linspace(0, np.pi, 80)[1:]
+    th2 = np.linspace(0, np.pi / 2, 40)[1:]
+    pts = np.vstack([
+        np.c_[40 * t, 0 * t, 0 * t],
+        np.c_[40 + 10 * np.sin(th), 0 * th, 10 - 10 * np.cos(th)],
+        np.c_[np.linspace(40, 30, 40)[1:], np.zeros(39), np.full(39, 20.0)],
+        np.c_[30 - 10 * np.sin(th2), 0 * th2, 10 + 10 * np.cos(th2)],
+        np.c_[np.full(20, 20.0), np.zeros(20), np.linspace(10, 0, 21)[1:]],
+    ])
+    tree = _tree([{"id": 0, "parent": None, "name": "loop", "points": pts.tolist(),
+                   "radius": [r] * len(pts)}])
+    spine = tree.pipe_specs()[0]["spine"]
+    solid = tree.solid()
+    chk = solid.check()
+    assert not solid.failed and chk["valid"] and chk["watertight"] and chk["solids"] == 1
+    assert sorted(t.role for _, t in solid.faces) == ["inlet", "wall", "wall"]  # no outlet: the end is inside
+    length = float(spine.t[-4] - spine.t[3])
+    assert solid.volume == pytest.approx(np.pi * r**2 * length - 8 * r**3 / 3, rel=2e-3)
+    assert solid.to_trimesh().is_watertight
+
+
+def test_a_tree_whose_root_cannot_be_built_says_why(monkeypatch):
+    import vesselcad.kernel.pipes as kp
+
+    def broken(branch_id, *args, **kwargs):
+        raise vc.GeometryError("the wall could not be swept")
+
+    monkeypatch.setattr(kp, "branch_pipe", broken)
+    with pytest.raises(vc.GeometryError, match=r"no pipe could be built \(branch 0 \(main\): pipe could "
+                                                r"not be built: the wall could not be swept\)"):
+        _y_tree().solid()
+
+
 def test_a_tree_with_two_roots_keeps_the_larger_and_says_why():
     y = [
         {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from scipy import interpolate, ndimage
 
-from .errors import ArgumentError, InputFileError
+from .errors import ArgumentError, GeometryError, InputFileError
 from .splines import arc_length, fit_pspline
 
 __all__ = ["TreeBranch", "VesselTree", "fit_spine", "fit_radius_law", "curvature"]
@@ -855,6 +855,10 @@ class VesselTree:
             except Exception as exc:  # one bad branch never loses the rest
                 failed[s["id"]] = f"pipe could not be built: {exc}"
         t2 = time.perf_counter()
+        if not pipes:
+            why = "; ".join(f"branch {s['id']} ({s['name']}): {failed[s['id']]}"
+                            for s in roots if s["id"] in failed)
+            raise GeometryError(f"tree: no pipe could be built ({why or 'no branches'})")
         out = fuse_pipes(pipes)
         out.failed = {**failed, **out.failed}
         out.warnings = warnings + _contacts(specs) + out.warnings

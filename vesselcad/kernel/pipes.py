@@ -626,8 +626,16 @@ def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int,
     for f in (f for p in parts for f in kept(p[1])):
         if not any(f.IsSame(w) for w in walls):
             walls.append(f)
-    start, end = kept(parts[0][2]), kept(parts[-1][3])
-    if not walls or len(start) != 1 or len(end) != 1:
+    caps = []
+    for cap in (parts[0][2], parts[-1][3]):
+        images = kept(cap)
+        if not images and op.IsDeleted(cap):
+            # the vessel ends inside itself (a distal end that comes back onto its own
+            # wall): no end face is left there; the original face stands for it (no
+            # face of the solid is tagged with it, so the end is no outlet)
+            images = [cap]
+        caps.append(images)
+    if not walls or any(len(c) != 1 for c in caps):
         raise GeometryError(f"branch {branch_id}: the union of the pieces of a pipe that overlaps itself "
-                            f"lost its wall or an end face")
-    return TopoDS.Solid_s(solids[0]), tuple(walls), start[0], end[0], _quick_volume(solids[0])
+                            f"lost its wall or split an end face")
+    return TopoDS.Solid_s(solids[0]), tuple(walls), caps[0][0], caps[1][0], _quick_volume(solids[0])

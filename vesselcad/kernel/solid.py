@@ -38,11 +38,15 @@ from OCP.ShapeUpgrade import ShapeUpgrade_UnifySameDomain
 from OCP.STEPConstruct import STEPConstruct
 from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
 from OCP.TCollection import TCollection_HAsciiString
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SOLID
+from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SOLID, TopAbs_WIRE
 from OCP.TopExp import TopExp, TopExp_Explorer
 from OCP.TopLoc import TopLoc_Location
 from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape, TopoDS_Solid
-from OCP.TopTools import TopTools_IndexedMapOfShape, TopTools_ListOfShape
+from OCP.TopTools import (
+    TopTools_IndexedDataMapOfShapeListOfShape,
+    TopTools_IndexedMapOfShape,
+    TopTools_ListOfShape,
+)
 
 from ..errors import ArgumentError, GeometryError, OutputError, VesselcadWarning
 from ..io.atomic import atomic_path
@@ -620,8 +624,17 @@ class VesselSolid:
         verts, tris, branch, role = [], [], [], []
         offset = 0
         codes = {"wall": 0, "inlet": 1, "outlet": 2, "cap": 3}
+        edge_faces = None
         for face, tag in self.faces:
             mesh = _face_triangulation(face)
+            if mesh is None:
+                # OCCT's mesher leaves some tiny planar slivers empty (an end disc that
+                # another vessel almost covers: 8e-6 mm², edges of 2-45 um): close them
+                # from their boundary as the neighbours discretized it
+                if edge_faces is None:
+                    edge_faces = TopTools_IndexedDataMapOfShapeListOfShape()
+                    TopExp.MapShapesAndAncestors_s(self.shape, TopAbs_EDGE, TopAbs_FACE, edge_faces)
+                mesh = _sliver_triangulation(face, edge_faces)
             if mesh is None:
                 raise GeometryError(f"to_trimesh: OCCT could not mesh a face of branch {tag.branch_id}")
             nodes, t, _ = mesh
@@ -1254,6 +1267,89 @@ def _face_triangulation(face: TopoDS_Face, uv: bool = False
         t = t[:, ::-1]
     params = np.array([tri.UVNode(i).Coord() for i in range(1, n + 1)]) if uv else None
     return nodes, t, params
+
+
+def _sliver_triangulation(face: TopoDS_Face, edge_faces: Any
+                          ) -> tuple[np.ndarray, np.ndarray, None] | None:
+    """Triangles of a planar face without holes that OCCT's mesher left empty, made from
+    its boundary as the neighbouring faces' triangulations discretize its edges (so the
+    mesh stays closed); like :func:`_face_triangulation`, oriented outward. None if the
+    face is not such a face or a neighbour has no polygon on an edge."""
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.BRepTools import BRepTools_WireExplorer
+    from OCP.GeomAbs import GeomAbs_Plane
+
+    ad = BRepAdaptor_Surface(face)
+    if ad.GetType() != GeomAbs_Plane or len(_subshapes(face, TopAbs_WIRE)) != 1:
+        return None
+    pos = ad.Plane().Position()
+    origin = np.array(pos.Location().Coord())
+    axes = np.array([pos.XDirection().Coord(), pos.YDirection().Coord()])
+    loop: list[np.ndarray] = []
+    walk = BRepTools_WireExplorer(BRepTools.OuterWire_s(face), face)
+    while walk.More():
+        edge = walk.Current()
+        pts = None
+        for other in edge_faces.FindFromKey(edge):
+            if other.IsSame(face):
+                continue
+            loc = TopLoc_Location()
+            tri = BRep_Tool.Triangulation_s(TopoDS.Face_s(other), loc)
+            poly = BRep_Tool.PolygonOnTriangulation_s(edge, tri, loc) if tri is not None else None
+            if poly is not None:
+                trsf = loc.Transformation()
+                pts = np.array([tri.Node(poly.Node(i)).Transformed(trsf).Coord()
+                                for i in range(1, poly.NbNodes() + 1)])
+                break
+        if pts is None:
+            return None
+        if walk.Orientation() == TopAbs_REVERSED:
+            pts = pts[::-1]
+        loop.append(pts[:-1])
+        walk.Next()
+    if not loop:
+        return None
+    nodes3 = np.vstack(loop)
+    tris = _ear_clip((nodes3 - origin) @ axes.T)
+    if tris is None:
+        return None
+    if face.Orientation() == TopAbs_REVERSED:
+        tris = tris[:, ::-1]
+    return nodes3, tris, None
+
+
+def _ear_clip(uv: np.ndarray) -> np.ndarray | None:
+    """Counter-clockwise triangles (indices) of a simple polygon given by its (n, 2) corners."""
+    n = len(uv)
+    if n < 3:
+        return None
+    area2 = np.sum(uv[:, 0] * np.roll(uv[:, 1], -1) - np.roll(uv[:, 0], -1) * uv[:, 1])
+    order = list(range(n)) if area2 > 0 else list(range(n))[::-1]
+
+    def cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+        return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
+    out = []
+    guard = 0
+    while len(order) > 3 and guard < n * n:
+        guard += 1
+        m = len(order)
+        for k in range(m):
+            i, j, h = order[k - 1], order[k], order[(k + 1) % m]
+            a, b, c = uv[i], uv[j], uv[h]
+            if cross(a, b, c) <= 0:
+                continue  # reflex (or flat) corner
+            inside = any(cross(a, b, uv[q]) >= 0 and cross(b, c, uv[q]) >= 0 and cross(c, a, uv[q]) >= 0
+                         for q in order if q not in (i, j, h))
+            if not inside:
+                out.append((i, j, h))
+                order.pop(k)
+                break
+        else:
+            return None
+    if len(order) == 3:
+        out.append(tuple(order))
+    return np.array(out, dtype=np.int64)
 
 
 def _winding(verts: np.ndarray, tris: np.ndarray, points: np.ndarray) -> np.ndarray:
