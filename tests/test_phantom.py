@@ -178,6 +178,6 @@ def test_twigs_set_the_number_of_small_side_branches():
     default, many = names(None), names(30)
     assert default[: len(named)] == named and any("-t" in n for n in default)
     assert len(named) < len(default) < len(many) <= 30
-    for bad in (-1, 31, 2.5, "5"):
+    for bad in (-1, 31, 2.5, "5", True):
         with pytest.raises(vc.ArgumentError, match="twigs"):
             generate_case(5, "lca", n_frames=1, rows=64, cols=64, twigs=bad)

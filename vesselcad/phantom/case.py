@@ -427,7 +427,8 @@ def generate_case(
         raise ArgumentError(f"fps: expected > 0, got {fps}")
     if not 0 <= miscalibration_deg <= 10:
         raise ArgumentError(f"miscalibration_deg: expected 0..10, got {miscalibration_deg}")
-    if twigs is not None and not (isinstance(twigs, int | np.integer) and 0 <= twigs <= 30):
+    if twigs is not None and (isinstance(twigs, bool) or not (isinstance(twigs, int | np.integer)
+                                                            and 0 <= twigs <= 30)):
         raise ArgumentError(f"twigs: expected an integer 0..30 or None, got {twigs!r}")
     rng = np.random.default_rng([int(seed), 0x7E55E1])
     if views is None:
