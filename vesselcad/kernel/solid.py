@@ -21,13 +21,16 @@ from typing import Any
 import numpy as np
 from OCP.Bnd import Bnd_Box
 from OCP.BRep import BRep_Tool
+from OCP.BRepAdaptor import BRepAdaptor_Surface
 from OCP.BRepAlgoAPI import BRepAlgoAPI_Check, BRepAlgoAPI_Fuse
 from OCP.BRepBndLib import BRepBndLib
 from OCP.BRepClass3d import BRepClass3d_SolidClassifier
 from OCP.BRepGProp import BRepGProp
 from OCP.BRepMesh import BRepMesh_IncrementalMesh
-from OCP.BRepTools import BRepTools
-from OCP.gp import gp_Pnt
+from OCP.BRepTools import BRepTools, BRepTools_WireExplorer
+from OCP.BRepTopAdaptor import BRepTopAdaptor_FClass2d
+from OCP.GeomAbs import GeomAbs_Plane
+from OCP.gp import gp_Pnt, gp_Pnt2d
 from OCP.GProp import GProp_GProps
 from OCP.IFSelect import IFSelect_RetDone
 from OCP.Interface import Interface_Static
@@ -38,7 +41,15 @@ from OCP.ShapeUpgrade import ShapeUpgrade_UnifySameDomain
 from OCP.STEPConstruct import STEPConstruct
 from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
 from OCP.TCollection import TCollection_HAsciiString
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SOLID, TopAbs_WIRE
+from OCP.TopAbs import (
+    TopAbs_EDGE,
+    TopAbs_FACE,
+    TopAbs_IN,
+    TopAbs_ON,
+    TopAbs_REVERSED,
+    TopAbs_SOLID,
+    TopAbs_WIRE,
+)
 from OCP.TopExp import TopExp, TopExp_Explorer
 from OCP.TopLoc import TopLoc_Location
 from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape, TopoDS_Solid
@@ -132,8 +143,8 @@ class BranchPipe:
     rings: np.ndarray = field(default_factory=lambda: np.empty((0, 0, 3)))
     axis: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
     axis_radius: np.ndarray = field(default_factory=lambda: np.empty(0))
-    _own: np.ndarray | None = field(default=None, repr=False, compare=False)
-    _axis_tree: Any = field(default=None, repr=False, compare=False)
+    _own: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    _axis_tree: Any = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def wall(self) -> TopoDS_Face:
@@ -1098,10 +1109,6 @@ def _rings_held(pipe: BranchPipe, walls: list[TopoDS_Face], pipes: list[BranchPi
     inside it. A probe whose ring is all covered or near other walls tells
     nothing; the pipe is held only if every probe tells and all say so.
     """
-    from OCP.BRepTopAdaptor import BRepTopAdaptor_FClass2d
-    from OCP.gp import gp_Pnt2d
-    from OCP.TopAbs import TopAbs_ON
-
     if pipe.rings.size == 0 or len(pipe.rings) != len(pipe.probes):
         return False
     pts = pipe.rings.reshape(-1, 3)
@@ -1275,10 +1282,6 @@ def _sliver_triangulation(face: TopoDS_Face, edge_faces: Any
     its boundary as the neighbouring faces' triangulations discretize its edges (so the
     mesh stays closed); like :func:`_face_triangulation`, oriented outward. None if the
     face is not such a face or a neighbour has no polygon on an edge."""
-    from OCP.BRepAdaptor import BRepAdaptor_Surface
-    from OCP.BRepTools import BRepTools_WireExplorer
-    from OCP.GeomAbs import GeomAbs_Plane
-
     ad = BRepAdaptor_Surface(face)
     if ad.GetType() != GeomAbs_Plane or len(_subshapes(face, TopAbs_WIRE)) != 1:
         return None
