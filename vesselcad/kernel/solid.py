@@ -1073,7 +1073,7 @@ def _missing(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History) ->
     altogether, every one of its probe points (three start radii along its
     axis, its middle, one end radius before its end) lies inside the union:
     shown cheaply by the wall round each probe staying on the union's
-    boundary (:func:`_rings_held`, ~1 ms a pipe), else by classifying the
+    boundary (:func:`_rings_held`, ~3 ms a pipe), else by classifying the
     probes (:func:`_inside`, a coarse triangulation of the union: ~0.3 s a tree).
     """
     faces = {hash(f): f for f in _subshapes(shape, TopAbs_FACE)}
