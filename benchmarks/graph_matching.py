@@ -13,8 +13,12 @@ with the phantom's 3D truth tree projected into both views:
   the truth landmark it is associated with (one-to-one, within 3 px plus the
   vessel radius);
 - precision: share of matched landmark pairs whose two landmarks stand for the
-  same truth landmark; recall: share of the truth landmarks detected in both
-  views that are matched to each other;
+  same truth landmark; same-point precision: share of matched landmark pairs
+  whose two landmarks are views of one 3D point of the truth centreline
+  (within 3 px plus the vessel radius in each view), truth landmark or not
+  (a junction where two vessels touch in 2D, the cut end of a loop); recall:
+  share of the truth landmarks detected in both views that are matched to each
+  other;
 - correctly paired length: share of the truth centreline length (samples every
   0.5 mm, visible in both masks) whose projections lie on the two pieces of
   one branch pair (within 1 px plus the radius in each view);
@@ -154,6 +158,28 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
     res["matched"] = len(m.landmark_pairs)
     res["correct"] = len(correct)
     correct_set = {(lm.a, lm.b) for lm in correct}
+    # Same-point precision: a matched pair whose two landmarks are views of one 3D point of
+    # the truth centreline (within 3 px plus the vessel radius in each view), whether or not
+    # that point is a truth landmark: a 2D junction where two vessels touch, the cut end of a
+    # loop, or a junction centre more than a radius from the bifurcation are such points.
+    dense_p, dense_r = [], []
+    for b in tree["branches"]:
+        p = np.asarray(b["points"], float)
+        if len(p) < 2:
+            continue
+        d = resample_by_arclength(p, 0.25)
+        dense_p.append(d)
+        dense_r.append(np.interp(np.linspace(0, 1, len(d)), np.linspace(0, 1, len(b["radius"])),
+                                 np.asarray(b["radius"], float)))
+    dp, dr = np.vstack(dense_p), np.concatenate(dense_r)
+    near_pt = []
+    ends = ([lm.a for lm in m.landmark_pairs], [lm.b for lm in m.landmark_pairs])
+    for g, v, idx in ((ga, va, ends[0]), (gb, vb, ends[1])):
+        q = v.project(dp)
+        rp = dr * v.sid_mm / v.depth(dp) / float(np.mean(v.pixel_spacing_mm))
+        pts = g.landmark_points[idx] if idx else np.zeros((0, 2))
+        near_pt.append(np.linalg.norm(pts[:, None] - q[None], axis=-1) <= 3.0 + rp[None])
+    res["same_point"] = int(np.sum((near_pt[0] & near_pt[1]).any(axis=1))) if m.landmark_pairs else 0
 
     # Correctly paired length: truth samples every 0.5 mm, visible in both masks.
     tot = ok = 0.0
@@ -229,6 +255,7 @@ def summarize(rows: list[dict]) -> list[dict]:
         out.append({
             "anatomy": name, "cases": len(rs),
             "precision": correct / max(matched, 1),
+            "same_point": sum(r["same_point"] for r in rs) / max(matched, 1),
             "recall": correct / max(matchable, 1),
             "detected": det / max(2 * truth, 1),
             "paired_length": sum(r["paired_length_mm"] for r in rs)
@@ -267,11 +294,12 @@ def main(argv: list[str] | None = None) -> int:
     for k in (tqdm(it, desc="cases", file=sys.stderr) if tqdm else it):
         rows.append(evaluate(args.seed + k, KINDS[k % 3], args.plot, not args.no_continuation))
     summ = summarize(rows)
-    print("| anatomy | cases | precision | recall | detected | paired length | topology | trees | roots "
-          "| 3D off truth | s/case (mean, p95) | graph s | match s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| anatomy | cases | precision | same-point precision | recall | detected | paired length "
+          "| topology | trees | roots | 3D off truth | s/case (mean, p95) | graph s | match s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for s in summ:
-        print(f"| {s['anatomy']} | {s['cases']} | {s['precision']:.3f} | {s['recall']:.3f} "
+        print(f"| {s['anatomy']} | {s['cases']} | {s['precision']:.3f} | {s['same_point']:.3f} "
+              f"| {s['recall']:.3f} "
               f"| {s['detected']:.3f} "
               f"| {100 * s['paired_length']:.1f}% | {s['topology']:.3f} | {100 * s['trees']:.0f}% "
               f"| {100 * s['roots']:.0f}% "
