@@ -14,7 +14,9 @@ two DICOM files, read back and reconstructed, with all outputs written
 Metrics (ARCHITECTURE.md): 3D centreline error (reconstructed samples every
 0.5 mm to the true centreline of run A's tree at the chosen frame; mean and
 p95), reprojection error (mean over both views, px and mm), coverage (share
-of the true tree's length within 1 mm of the reconstruction), ostium (the
+of the true tree's length within 1 mm of the reconstruction), visible (share
+of the true tree's length that the label masks of both chosen frames show: the
+most any reconstruction from them can cover), ostium (the
 two views' matched roots, triangulated, to the true ostium: median, and
 cases within 3 mm), valid and watertight solid, wall time per case and per
 stage.
@@ -76,9 +78,10 @@ def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path) -
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| variant | cases | 3D mean mm | 3D p95 mm | reproj px | reproj mm | coverage | ostium mm "
-           "| solid valid+watertight | refined | s/case (mean, max) | " + " | ".join(STAGES) + " |",
-           "|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(STAGES)]
+    out = ["| variant | cases | 3D mean mm | 3D p95 mm | reproj px | reproj mm | coverage | visible "
+           "| ostium mm | solid valid+watertight | refined | s/case (mean, max) | "
+           + " | ".join(STAGES) + " |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(STAGES)]
     for variant in dict.fromkeys(r["variant"] for r in rows):
         rs = [r for r in rows if r["variant"] == variant]
         ok = [r for r in rs if r["status"] == "ok"]
@@ -90,6 +93,7 @@ def table(rows: list[dict]) -> str:
         rpx = np.mean([r["reprojection"].get("mean_px", np.nan) for r in ok])
         rmm = np.mean([r["reprojection"].get("mean_mm", np.nan) for r in ok])
         cov = np.mean([r["truth"]["coverage"] for r in ok])
+        vis = np.mean([r["truth"].get("visible", np.nan) for r in ok])
         ost = np.array([r["truth"].get("ostium_mm", np.nan) for r in ok], float)
         ost_s = (f"{np.nanmedian(ost):.2f} ({np.sum(ost <= 3.0)}/{len(ok)} ≤ 3)" if np.isfinite(ost).any()
                  else "-")
@@ -98,7 +102,8 @@ def table(rows: list[dict]) -> str:
         secs = [r["seconds"] for r in rs]
         st = " | ".join(f"{np.mean([r['timings'].get(s, 0.0) for r in ok]):.2f}" for s in STAGES)
         out.append(f"| {variant} | {len(rs)} ({len(rs) - len(ok)} failed) | {mean3:.3f} | {p953:.3f} | "
-                   f"{rpx:.3f} | {rmm:.3f} | {cov:.1%} | {ost_s} | {solid}/{len(rs)} | {ref}/{len(ok)} | "
+                   f"{rpx:.3f} | {rmm:.3f} | {cov:.1%} | {vis:.1%} | {ost_s} | {solid}/{len(rs)} "
+                   f"| {ref}/{len(ok)} | "
                    f"{np.mean(secs):.1f}, "
                    f"{np.max(secs):.1f} | {st} |")
     return "\n".join(out)

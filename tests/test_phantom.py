@@ -181,3 +181,31 @@ def test_twigs_set_the_number_of_small_side_branches():
     for bad in (-1, 31, 2.5, "5", True):
         with pytest.raises(vc.ArgumentError, match="twigs"):
             generate_case(5, "lca", n_frames=1, rows=64, cols=64, twigs=bad)
+
+
+def test_visible_share_of_the_truth_in_two_frames(case):
+    from vesselcad.phantom.compare import visible_share
+
+    i = int(np.argmax((case.run_a.labels == LABELS["vessel"]).sum(axis=(1, 2))))
+    full = visible_share(case, i, i)
+    assert full >= 0.85, (case.anatomy_kind, full)  # the fullest frames show nearly the whole tree
+    saved = case.run_b.labels[i].copy()
+    try:
+        case.run_b.labels[i][:] = LABELS["background"]
+        assert visible_share(case, i, i) == 0.0  # nothing shown in view B: nothing to reconstruct
+        # View B shows only its left half: about the tree's length projected there.
+        half = case.run_b.view.cols // 2
+        case.run_b.labels[i][:] = saved
+        case.run_b.labels[i][:, half:] = LABELS["background"]
+        tree = case.run_a.trees[i]
+        seg_len, left = 0.0, 0.0
+        for b, bb in zip(tree["branches"], case.run_b.trees[i]["branches"], strict=True):
+            p = np.asarray(b["points"], float)
+            q = case.run_b.view.project(np.asarray(bb["points"], float))
+            seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+            seg_len += seg.sum()
+            left += seg[(q[:-1, 0] < half - 2) & (q[1:, 0] < half - 2)].sum()
+        got = visible_share(case, i, i)
+        assert got <= full and abs(got - full * left / seg_len) < 0.08, (got, full, left / seg_len)
+    finally:
+        case.run_b.labels[i][:] = saved

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..splines import resample_by_arclength
@@ -27,7 +28,9 @@ def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: flo
         ``mean_mm``, ``p95_mm``, ``max_mm``, ``coverage``, ``truth_length_mm``,
         ``phase_difference`` (true cardiac and respiratory difference of the pair,
         in cycles), ``ostium_mm`` (distance of the matched roots of the two views,
-        triangulated, from the true ostium; NaN when the roots were not paired).
+        triangulated, from the true ostium; NaN when the roots were not paired),
+        ``visible`` (share of the true tree's length that the label masks of both
+        chosen frames show: the coverage any reconstruction from them can reach).
     """
     fa, fb = rec.phase.frame_a, rec.phase.frame_b
     truth = case.run_a.trees[fa]
@@ -37,7 +40,8 @@ def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: flo
     d = np.minimum(d, 1.0 - d)
     out: dict[str, Any] = {"truth_length_mm": round(float(step_mm * (len(tpts) - len(truth["branches"]))), 2),
                            "phase_difference": {"cardiac": round(float(d[0]), 4),
-                                                "respiratory": round(float(d[1]), 4)}}
+                                                "respiratory": round(float(d[1]), 4)},
+                           "visible": round(visible_share(case, fa, fb), 4)}
     # The ostium: the matched root landmarks of the two views, triangulated.
     roots = tuple(rec.match.roots)
     root = next((m for m in rec.match.landmark_pairs if (m.a, m.b) == roots), None)
@@ -53,3 +57,37 @@ def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: flo
     cov, _ = cKDTree(pts).query(tpts)
     return {**out, "mean_mm": round(float(err.mean()), 4), "p95_mm": round(float(np.percentile(err, 95)), 4),
             "max_mm": round(float(err.max()), 4), "coverage": round(float(np.mean(cov <= within_mm)), 4)}
+
+
+def visible_share(case: Any, frame_a: int, frame_b: int, max_gap_px: float = 1.5) -> float:
+    """Share of run A's true tree at ``frame_a`` (by length) that both chosen frames show.
+
+    A true centreline point counts as shown in a view when its projection lies
+    inside the image within ``max_gap_px`` of that frame's vessel label; in
+    run B the same point of the tree is taken at ``frame_b`` (the vessels move
+    between the frames). No reconstruction from these two frames can cover
+    more of the tree.
+    """
+    from .case import LABELS
+
+    shown = []
+    for run, fr in ((case.run_a, frame_a), (case.run_b, frame_b)):
+        v = run.view
+        gap = ndimage.distance_transform_edt(run.labels[fr] != LABELS["vessel"])
+        per = []
+        for b in run.trees[fr]["branches"]:
+            q = v.project(np.asarray(b["points"], float))
+            inside = (q[:, 0] >= 0) & (q[:, 0] <= v.cols - 1) & (q[:, 1] >= 0) & (q[:, 1] <= v.rows - 1)
+            ij = np.clip(np.round(q).astype(int), 0, [v.cols - 1, v.rows - 1])
+            per.append(inside & (gap[ij[:, 1], ij[:, 0]] <= max_gap_px))
+        shown.append(per)
+    total = both = 0.0
+    for k, b in enumerate(case.run_a.trees[frame_a]["branches"]):
+        p = np.asarray(b["points"], float)
+        if len(p) < 2 or len(shown[1][k]) != len(p):
+            continue
+        seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        ok = shown[0][k] & shown[1][k]
+        total += float(seg.sum())
+        both += float(seg[ok[:-1] & ok[1:]].sum())
+    return both / total if total > 0 else 0.0
