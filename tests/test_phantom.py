@@ -209,3 +209,14 @@ def test_visible_share_of_the_truth_in_two_frames(case):
         assert got <= full and abs(got - full * left / seg_len) < 0.08, (got, full, left / seg_len)
     finally:
         case.run_b.labels[i][:] = saved
+
+
+def test_visible_share_bad_frames():
+    from vesselcad.phantom.compare import visible_share
+
+    c = generate_case(3, "rca", n_frames=2, rows=64, cols=64)
+    for bad in (2, -1, 1.0, True):
+        with pytest.raises(vc.ArgumentError, match="frame_a"):
+            visible_share(c, bad, 0)
+    with pytest.raises(vc.ArgumentError, match="max_gap_px"):
+        visible_share(c, 0, 0, max_gap_px=-1)

@@ -8,6 +8,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from ..errors import ArgumentError
 from ..splines import resample_by_arclength
 
 __all__ = ["compare_with_truth"]
@@ -70,6 +71,12 @@ def visible_share(case: Any, frame_a: int, frame_b: int, max_gap_px: float = 1.5
     """
     from .case import LABELS
 
+    for name, fr, run in (("frame_a", frame_a, case.run_a), ("frame_b", frame_b, case.run_b)):
+        n = len(run.labels)
+        if isinstance(fr, bool) or not isinstance(fr, int | np.integer) or not 0 <= fr < n:
+            raise ArgumentError(f"visible_share: {name} must be a frame index 0..{n - 1}, got {fr!r}")
+    if not (isinstance(max_gap_px, int | float) and np.isfinite(max_gap_px) and max_gap_px >= 0):
+        raise ArgumentError(f"visible_share: max_gap_px must be a number >= 0, got {max_gap_px!r}")
     shown = []
     for run, fr in ((case.run_a, frame_a), (case.run_b, frame_b)):
         v = run.view
