@@ -148,6 +148,18 @@ def test_bad_input_is_rejected(tmp_path, seg):
         seg(np.zeros((2, 32, 32), complex))
     with pytest.raises(ArgumentError, match="batch_size"):
         vc.Segmenter(batch_size=0)
+    with pytest.raises(ArgumentError, match="layout"):
+        vc.Segmenter(layout="nhwc")
+
+
+def test_both_convolution_layouts_compute_the_same_network(phantom_frames):
+    # onnxruntime's blocked NCHWc convolutions and its plain im2col/GEMM ones are two
+    # implementations of the same network: same labels, probabilities equal to float rounding.
+    frames = phantom_frames[0][:2]
+    out = {lay: vc.Segmenter(threads=2, layout=lay)(frames, return_proba=True) for lay in ("nchwc", "nchw")}
+    assert np.array_equal(out["nchwc"][0], out["nchw"][0])
+    assert np.abs(out["nchwc"][1] - out["nchw"][1]).max() < 1e-4
+    assert vc.Segmenter(threads=2).layout in ("nchwc", "nchw")  # 'auto' picked one
 
 
 def test_model_with_wrong_outputs_is_rejected(tmp_path):
