@@ -174,16 +174,21 @@ class Segmenter:
 
         self._session = session(True)
         self._io = self._check_io(path)
+        plain = None
         if not cpu:
             layout = "nchwc"
         elif layout == "auto":
             key = (str(path.resolve()), threads)
             if key not in _LAYOUT_CHOICE:
-                other = session(False)
-                _LAYOUT_CHOICE[key] = "nchw" if self._probe(other) < self._probe(self._session) else "nchwc"
+                plain = session(False)
+                try:
+                    faster = self._probe(plain) < self._probe(self._session)
+                except Exception:  # noqa: BLE001 - e.g. a model of fixed input size: keep the default
+                    faster = False
+                _LAYOUT_CHOICE[key] = "nchw" if faster else "nchwc"
             layout = _LAYOUT_CHOICE[key]
         if layout == "nchw":
-            self._session = session(False)
+            self._session = plain if plain is not None else session(False)
         self.layout = layout
         self.path = path
         self.batch_size = int(batch_size)
