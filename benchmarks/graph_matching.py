@@ -86,6 +86,24 @@ def truth_landmarks(tree: dict) -> tuple[np.ndarray, list[tuple[int, float]], li
     return np.array(pts), where, kind, np.array(rad)
 
 
+def dense_branches(tree: dict, step_mm: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each truth vessel's centreline resampled every ``step_mm``, with its radius (mm) there."""
+    out = []
+    for b in tree["branches"]:
+        p = np.asarray(b["points"], float)
+        if len(p) < 2:
+            continue
+        d = resample_by_arclength(p, step_mm)
+        r = np.asarray(b["radius"], float)
+        out.append((d, np.interp(np.linspace(0, 1, len(d)), np.linspace(0, 1, len(r)), r)))
+    return out
+
+
+def radius_px(view: vc.CArmView, points: np.ndarray, radius_mm: np.ndarray) -> np.ndarray:
+    """Radius (mm, at ``points``) as it appears in ``view`` (px)."""
+    return radius_mm * view.sid_mm / view.depth(points) / float(np.mean(view.pixel_spacing_mm))
+
+
 def is_ancestor(tree: dict, t1: tuple[int, float], t2: tuple[int, float]) -> bool:
     """Whether truth position t1 lies on the path from the root to t2."""
     k, s = t2
@@ -134,7 +152,7 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
     roots_ok = 0
     for g, v, (mask, _) in ((ga, va, masks[0]), (gb, vb, masks[1])):
         tp = v.project(T3)
-        r_px = trad * v.sid_mm / v.depth(T3) / float(np.mean(v.pixel_spacing_mm))
+        r_px = radius_px(v, T3, trad)
         # Visible: vessel pixels within 2 px plus half the radius. The ostium lies under the
         # catheter's tip, 3-4 px from the first vessel pixel (radius 7-10 px); a landmark hidden
         # under a device or another class by more than half a vessel width is not visible.
@@ -162,21 +180,13 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
     # the truth centreline (within 3 px plus the vessel radius in each view), whether or not
     # that point is a truth landmark: a 2D junction where two vessels touch, the cut end of a
     # loop, or a junction centre more than a radius from the bifurcation are such points.
-    dense_p, dense_r = [], []
-    for b in tree["branches"]:
-        p = np.asarray(b["points"], float)
-        if len(p) < 2:
-            continue
-        d = resample_by_arclength(p, 0.25)
-        dense_p.append(d)
-        dense_r.append(np.interp(np.linspace(0, 1, len(d)), np.linspace(0, 1, len(b["radius"])),
-                                 np.asarray(b["radius"], float)))
-    dp, dr = np.vstack(dense_p), np.concatenate(dense_r)
+    dense = dense_branches(tree, 0.25)
+    dp, dr = np.vstack([d for d, _ in dense]), np.concatenate([r for _, r in dense])
     near_pt = []
     ends = ([lm.a for lm in m.landmark_pairs], [lm.b for lm in m.landmark_pairs])
     for g, v, idx in ((ga, va, ends[0]), (gb, vb, ends[1])):
         q = v.project(dp)
-        rp = dr * v.sid_mm / v.depth(dp) / float(np.mean(v.pixel_spacing_mm))
+        rp = radius_px(v, dp, dr)
         pts = g.landmark_points[idx] if idx else np.zeros((0, 2))
         near_pt.append(np.linalg.norm(pts[:, None] - q[None], axis=-1) <= 3.0 + rp[None])
     res["same_point"] = int(np.sum((near_pt[0] & near_pt[1]).any(axis=1))) if m.landmark_pairs else 0
@@ -185,17 +195,12 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
     tot = ok = 0.0
     pieces_a = [p.points_a_px for p in m.pairs]
     pieces_b = [p.points_b_px for p in m.pairs]
-    for b in tree["branches"]:
-        p = np.asarray(b["points"], float)
-        if len(p) < 2:
-            continue
-        dense = resample_by_arclength(p, 0.5)
-        r = np.interp(np.linspace(0, 1, len(dense)), np.linspace(0, 1, len(b["radius"])), b["radius"])
+    for dense, r in dense_branches(tree, 0.5):
         on = np.ones(len(dense), bool)
         near_pair = np.ones((len(m.pairs), len(dense)), bool)
         for v, (mask, _), pieces in ((va, masks[0], pieces_a), (vb, masks[1], pieces_b)):
             q = v.project(dense)
-            rp = r * v.sid_mm / v.depth(dense) / float(np.mean(v.pixel_spacing_mm))
+            rp = radius_px(v, dense, r)
             ij = np.clip(np.round(q).astype(int), 0, [v.cols - 1, v.rows - 1])
             on &= mask[ij[:, 1], ij[:, 0]]
             for k, piece in enumerate(pieces):
