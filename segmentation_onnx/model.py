@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["GatedUNet", "Gate", "UNet", "build_model", "DEFAULT_WIDTHS", "N_CLASSES"]
+__all__ = ["GatedUNet", "Gate", "UNet", "build_model", "revive_dead_blocks", "DEFAULT_WIDTHS", "N_CLASSES"]
 
 #: Channels of the four encoder blocks and the bottleneck. The fp32 ONNX file stays below
 #: 10 MB; a 512 x 512 frame takes about 0.4 s on two CPU cores (see MODEL_CARD.md).
@@ -120,3 +120,46 @@ def build_model(arch: str, widths: tuple[int, ...] = DEFAULT_WIDTHS) -> UNet:
     if arch == "plain":
         return UNet(widths=widths, gated=False)
     raise ValueError(f"arch: expected 'gated' or 'plain', got {arch!r}")
+
+
+def revive_dead_blocks(model: UNet, tol: float = 1e-3) -> list[str]:
+    """Re-initialize the (conv, BN, ReLU) x 2 blocks whose batch norms have collapsed.
+
+    Adam with *coupled* L2 weight decay (``torch.optim.Adam(weight_decay=...)``,
+    rounds 1-6 of the bundled models) pulls every parameter whose loss gradient
+    is small towards zero by about ``lr`` per step, whatever its size; once a
+    batch norm's scale reaches zero, its block outputs a constant and receives
+    no gradient again. The bundled models of rounds 1-6 lost their bottleneck
+    this way (scales ~1e-41). A block is revived when every scale of one of
+    its batch norms is below ``tol``: both convolutions get a fresh Kaiming
+    initialization and the batch norms scale 1, shift 0 and fresh running
+    statistics. The block's consumer keeps its (near-zero) weights, so the
+    network's output does not jump: training grows the path back.
+
+    Parameters
+    ----------
+    model : UNet
+    tol : float
+        Largest |scale| of a batch norm counted as dead.
+
+    Returns
+    -------
+    list of str
+        Names of the revived blocks (e.g. ``['bottleneck']``).
+    """
+    blocks = [(f"encoders.{i}", b) for i, b in enumerate(model.encoders)]
+    blocks += [("bottleneck", model.bottleneck)]
+    blocks += [(f"decoders.{i}", b) for i, b in enumerate(model.decoders)]
+    revived = []
+    for name, block in blocks:
+        bns = [m for m in block if isinstance(m, nn.BatchNorm2d)]
+        if not any(float(bn.weight.detach().abs().max()) < tol for bn in bns):
+            continue
+        with torch.no_grad():
+            for m in block:
+                if isinstance(m, nn.Conv2d):
+                    nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
+                elif isinstance(m, nn.BatchNorm2d):
+                    m.reset_parameters()
+        revived.append(name)
+    return revived

@@ -152,6 +152,8 @@ def test_bad_batch_inputs(tmp_path, archive):
         run_batch(archive, tmp_path / "o", jobs=0)
     with pytest.raises(vc.ArgumentError, match="labels"):
         run_batch(archive, tmp_path / "o", labels=None)
+    with pytest.raises(vc.InputFileError, match="int9: no such segmentation model"):
+        run_batch(archive, tmp_path / "o", model="int9")  # not a bundled name ('fp32', 'int8'): a path
     assert main(["batch", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")]) == 2
 
 

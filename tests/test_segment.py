@@ -162,6 +162,58 @@ def test_both_convolution_layouts_compute_the_same_network(phantom_frames):
     assert vc.Segmenter(threads=2).layout in ("nchwc", "nchw")  # 'auto' picked one
 
 
+def test_int8_model_keeps_the_labels(seg, phantom_frames):
+    from segmentation_onnx.evaluate import iou_per_class
+
+    frames, labels = phantom_frames
+    q = vc.Segmenter("int8", threads=2)
+    assert q.path.name == "gated_unet_int8.onnx" and q.path.stat().st_size < 3e6
+    pred8, pred32 = q(frames), seg(frames)
+    # against the phantom's truth as the fp32 model, and the same label on almost every pixel
+    iou8 = dict(zip(CLASSES, iou_per_class(pred8, labels), strict=True))
+    iou32 = dict(zip(CLASSES, iou_per_class(pred32, labels), strict=True))
+    assert iou8["vessel"] > 0.5 and iou8["vessel"] > iou32["vessel"] - 0.03
+    assert (pred8 == pred32).mean() > 0.98
+
+
+def test_int8_weights_cannot_saturate_without_vnni():
+    # x86 CPUs without VNNI multiply uint8 activations by int8 weights with vpmaddubsw, which adds
+    # two products into a saturating int16: 2 * 255 * |w| must stay <= 32767, i.e. |w| <= 64.
+    onnx = pytest.importorskip("onnx")
+    from onnx import numpy_helper
+
+    from vesselcad.segment import bundled_model_path
+
+    m = onnx.load(str(bundled_model_path("gated_unet_int8.onnx")))
+    ints = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
+    deq = [ints[n.input[0]] for n in m.graph.node if n.op_type == "DequantizeLinear" and n.input[0] in ints]
+    weights = [w for w in deq if w.dtype == np.int8]
+    assert len(weights) >= 20  # every convolution
+    assert max(int(np.abs(w.astype(np.int32)).max()) for w in weights) <= 64
+    assert 2 * 255 * 64 <= 32767
+
+
+def test_revive_dead_blocks_keeps_the_output():
+    torch = pytest.importorskip("torch")
+    from segmentation_onnx.model import build_model, revive_dead_blocks
+
+    torch.manual_seed(0)
+    m = build_model("gated", (4, 8, 8, 8, 8)).eval()
+    with torch.no_grad():  # what coupled L2 decay under Adam did to the bundled models' bottleneck
+        for bn in (m.bottleneck[1], m.bottleneck[4]):
+            bn.weight.zero_()
+            bn.bias.zero_()
+        m.ups[0].weight.zero_()
+    x = torch.randn(1, 1, 32, 32)
+    before = m(x)
+    enc = m.encoders[0][0].weight.clone()
+    assert revive_dead_blocks(m) == ["bottleneck"]
+    assert torch.all(m.bottleneck[1].weight == 1) and m.bottleneck[0].weight.abs().sum() > 0
+    assert torch.equal(m.encoders[0][0].weight, enc)  # live blocks untouched
+    torch.testing.assert_close(m(x), before)  # its consumer still weighs it 0: same network
+    assert revive_dead_blocks(m) == []
+
+
 def test_model_with_wrong_outputs_is_rejected(tmp_path):
     torch = pytest.importorskip("torch")
 

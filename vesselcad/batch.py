@@ -524,7 +524,9 @@ def run_batch(
     if bad:
         raise ArgumentError(f"unknown reconstruct option(s) for a batch: {', '.join(sorted(bad))}")
     options = {**_DEFAULTS, **options}
-    if options.get("model") is not None:
+    from .segment import BUNDLED_MODELS
+
+    if options.get("model") is not None and options["model"] not in BUNDLED_MODELS:
         model = Path(options["model"])
         if not model.is_file():
             raise InputFileError(f"{model}: no such segmentation model")

@@ -431,9 +431,10 @@ def reconstruct(
     frames : (int, int), optional
         Use this frame pair instead of the one motion phase matching picks
         (its phase error is still reported).
-    model : path or Segmenter, optional
-        Segmentation model (ONNX), or a loaded ``Segmenter`` to reuse across
-        calls; default: the bundled gated U-Net.
+    model : path, {'fp32', 'int8'} or Segmenter, optional
+        Segmentation model (ONNX file or the name of a bundled one, see
+        :class:`Segmenter`), or a loaded ``Segmenter`` to reuse across calls;
+        default: the bundled gated U-Net (fp32).
     labels : (array, array), optional
         Segmentation labels of every frame of each run (N, H, W) instead of
         running the model (0 background, 1 vessel, 2 catheter, 3 balloon, 4 lead).
