@@ -22,7 +22,7 @@ cases within 3 mm), valid and watertight solid, wall time per case and per
 stage.
 
 Run ``python benchmarks/end_to_end.py --cases 12`` (``--json FILE`` for raw numbers,
-``--variants truth,model`` to choose).
+``--variants truth,model`` to choose, ``--model FILE|int8`` for the model variant's network).
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ KINDS = ("lca", "rca", "cs")
 STAGES = ("segmentation", "phase", "graphs", "refinement", "matching", "centrelines_3d", "solid", "write")
 
 
-def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path) -> dict:
+def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
+             segmenter: vc.Segmenter | None = None) -> dict:
     mis = 1.5 if variant.endswith("1.5deg") else 0.0
     case = generate_case(seed, kind, n_frames, miscalibration_deg=mis)
     d = workdir / f"{seed}_{variant}"
@@ -59,7 +60,7 @@ def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path) -
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            rec = reconstruct(paths["run_a"], paths["run_b"], labels=labels)
+            rec = reconstruct(paths["run_a"], paths["run_b"], labels=labels, model=segmenter)
             rec.write(d / "out")
     except vc.VesselcadError as exc:
         row.update(status=f"failed: {exc}", seconds=time.perf_counter() - t0)
@@ -115,8 +116,11 @@ def main() -> None:
     ap.add_argument("--first-seed", type=int, default=2000)
     ap.add_argument("--variants", default="truth,truth+1.5deg,model")
     ap.add_argument("--json", metavar="FILE")
+    ap.add_argument("--model", metavar="ONNX", help="segmentation model of the 'model' variant: a file, "
+                    "'fp32' or 'int8' (default: the bundled fp32 model)")
     args = ap.parse_args()
     variants = args.variants.split(",")
+    segmenter = vc.Segmenter(args.model) if "model" in variants else None
     rows = []
     t0 = time.time()
     with tempfile.TemporaryDirectory() as tmp:
@@ -124,7 +128,7 @@ def main() -> None:
             seed, kind = args.first_seed + i, KINDS[i % 3]
             n_frames = 40 + (i * 7) % 21
             for v in variants:
-                r = run_case(seed, kind, n_frames, v, Path(tmp))
+                r = run_case(seed, kind, n_frames, v, Path(tmp), segmenter)
                 rows.append(r)
                 t = r.get("truth", {})
                 print(f"seed {seed} {kind} {n_frames} frames {v}: {r['status'][:80]}; 3D mean "
