@@ -135,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--revive", action="store_true",
                     help="with --init: re-initialize blocks whose batch norms collapsed to zero")
     ap.add_argument("--amp", action="store_true",
-                    help="bfloat16 autocast (GPUs with bf16 tensor cores; CPUs with AMX: ~4x faster than fp32)")
+                    help="bfloat16 autocast (GPUs with bf16 tensor cores; CPUs with AMX: ~4x faster "
+                    "than fp32)")
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
 
