@@ -2,7 +2,7 @@
 
 ``python -m segmentation_onnx.quantize SRC.onnx DST.onnx`` writes the static
 int8 model (``gated_unet_int8.onnx`` is made this way from ``gated_unet.onnx``;
-needs the ``onnx`` package, extra ``train``).
+needs the ``onnx`` package: extras ``train`` or ``dev``).
 """
 
 from __future__ import annotations

@@ -139,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
                     "than fp32)")
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
+    if a.revive and not a.init:
+        ap.error("--revive needs --init (the weights whose collapsed blocks to re-initialize)")
 
     t_start = time.time()
     out = Path(a.out)
