@@ -51,6 +51,46 @@ def test_catheter_tips_match_the_truth():
         assert np.max(np.linalg.norm(track.points_px - rr.keypoints, axis=1)) < 2.0
 
 
+def _catheter_frame(length: int = 200) -> np.ndarray:
+    """256² labels: a catheter 5 px wide from the top edge down to row ``length`` (excluded).
+
+    Its key point is the centre of the tip's cap, about one radius (2.5 px) short of the end.
+    """
+    lab = np.zeros((1, 256, 256), np.uint8)
+    lab[0, :length, 126:131] = LABELS["catheter"]
+    return lab
+
+
+def test_catheter_cut_by_vessels_keeps_its_tip():
+    # The segmentation gives 50 px of the catheter, where vessels cross it, to the vessel class:
+    # the cut end at row 80 faces the rest of the catheter and is not its tip.
+    lab = _catheter_frame()
+    lab[0, 80:130, :] = LABELS["vessel"]
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [128.0, 197.5]) < 2.0
+    # Background in the gap: the two pieces are not one device, the piece from the edge ends at 80.
+    lab[0, 80:130, :] = 0
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [128.0, 77.5]) < 2.0
+
+
+def test_lead_crossing_the_catheter_keeps_its_tip():
+    lab = _catheter_frame()
+    lab[0, 100:105, :] = LABELS["lead"]  # drawn over the catheter
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [128.0, 197.5]) < 2.0
+
+
+def test_catheter_fragment_beside_a_lead_is_not_the_tip():
+    # A lead comes down to row 230; a short piece labelled catheter touches it 200 px from the
+    # edge. Only the lead joins that piece to the image edge: the catheter's tip is at row 150.
+    lab = _catheter_frame(150)
+    lab[0, :231, 58:63] = LABELS["lead"]
+    lab[0, 200:205, 63:90] = LABELS["catheter"]
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [128.0, 147.5]) < 2.0
+
+
 def test_frames_without_the_object_are_skipped(sync_cs):
     case, run_a, run_b = sync_cs
     la = case.run_a.labels.copy()

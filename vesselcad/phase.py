@@ -220,6 +220,14 @@ def _sample(mask: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return ndimage.map_coordinates(m, [pts[:, 1], pts[:, 0]], order=1, mode="constant", cval=0.0)
 
 
+# A device cut in two where it crosses other structures (see _breaks).
+_BREAK_GAP_SHARE = 0.3  # of the image's longer side
+_BREAK_ANGLE_DEG = 30.0
+_BREAK_LABELLED = 0.7
+# Largest share of the path from the border to a device's tip that may run on other devices.
+_MAX_OFF_SHARE = 0.5
+
+
 def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tuple[np.ndarray | None, str]:
     """Sub-pixel distal tip of a tubular device in one frame.
 
@@ -262,25 +270,47 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tupl
         dst.append(j[hit])
         wts.append(np.full(hit.sum(), np.hypot(dr, dc)))
     src, dst, wts = np.concatenate(src), np.concatenate(dst), np.concatenate(wts)
-    graph = coo_matrix((np.r_[wts, wts], (np.r_[src, dst], np.r_[dst, src])), shape=(sr.size,) * 2).tocsr()
-    degree = np.diff(graph.indptr)
-    _, comp = connected_components(graph, directed=False)
+    own = sub[sr, sc]
     gr, gc = sr + r0, sc + c0
+    xy = np.stack([gc, gr], axis=1).astype(float)
     # Skeletons stop about one radius short of where the mask meets the image edge.
     dt = ndimage.distance_transform_edt(np.pad(sub, 1))[1:-1, 1:-1]
     border = border + int(np.ceil(dt.max()))
     at_border = (gr < border) | (gc < border) | (gr >= mask.shape[0] - border) | (
         gc >= mask.shape[1] - border)
-    # A device enters the image at its border; its pieces that do (the projection can
-    # split it, e.g. the aortic arch above the field) lead to the free distal end.
-    entering = np.isin(comp, np.unique(comp[at_border]))
-    ends = np.nonzero(entering & (degree == 1) & ~at_border & sub[sr, sc] & ~others[sr, sc])[0]
     if not at_border.any():
         return None, "ambiguous"  # both ends inside the image: which is distal is unknown
+    n = sr.size
+    graph = coo_matrix((np.r_[wts, wts], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
+    degree = np.diff(graph.indptr)
+    free = np.nonzero((degree == 1) & ~at_border & own & ~others[sr, sc])[0]
+    # Where the segmentation gives a crossing to another class (vessels over the catheter),
+    # the device is cut in two: the cut ends face each other; bridge them.
+    i, j, cut_free = _breaks(free, frame, xy, graph)
+    cut = np.zeros(n, bool)
+    cut[free[cut_free]] = True
+    bridge = np.linalg.norm(xy[free[i]] - xy[free[j]], axis=1)
+    src, dst, wts = np.r_[src, free[i]], np.r_[dst, free[j]], np.r_[wts, bridge]
+    on = np.r_[own[src[: src.size - i.size]] & own[dst[: dst.size - i.size]], np.zeros(i.size, bool)]
+    graph = coo_matrix((np.r_[wts, wts], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
+    # A device enters the image at its border; its pieces that do (the projection can
+    # split it, e.g. the aortic arch above the field) lead to the free distal end.
+    _, comp = connected_components(graph, directed=False)
+    entering = np.isin(comp, np.unique(comp[at_border]))
+    ends = free[entering[free] & ~cut[free]]
     if ends.size == 0:
         return None, "no free end"
     dist, pred, _ = dijkstra(graph, directed=False, indices=np.nonzero(at_border)[0], min_only=True,
                              return_predecessors=True)
+    # The path in from the border may cross other devices (a lead over the catheter) or a
+    # bridged cut, but mostly runs on this device: a fragment of its class that only another
+    # device joins to the border (a vessel piece taken for catheter beside a lead) is no tip.
+    off = np.where(on, 1e-9, wts)
+    off_graph = coo_matrix((np.r_[off, off], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
+    off_dist = dijkstra(off_graph, directed=False, indices=np.nonzero(at_border)[0], min_only=True)
+    ends = ends[off_dist[ends] <= _MAX_OFF_SHARE * dist[ends]]
+    if ends.size == 0:
+        return None, "no free end"
     tip = ends[np.argmax(np.where(np.isfinite(dist[ends]), dist[ends], -1))]
     if not np.isfinite(dist[tip]):
         return None, "no free end"
@@ -303,6 +333,73 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tupl
     boundary = ray[max(last - 1, 0)] + 0.05 * direction  # half a step past the last inside sample
     # A round cap ends half a pixel beyond the last covered pixel centre, one radius past its centre.
     return boundary + (0.5 - radius) * direction, ""
+
+
+def _end_directions(ends: np.ndarray, xy: np.ndarray, graph: Any, back: int = 10) -> np.ndarray:
+    """Unit directions (x, y) out of a skeleton at its free ends, over ``back`` skeleton steps."""
+    out = np.zeros((ends.size, 2))
+    ptr, nbr = graph.indptr, graph.indices
+    for k, e in enumerate(ends):  # a short walk per free end (a handful per frame)
+        prev, cur = -1, e
+        for _ in range(back):
+            nxt = [v for v in nbr[ptr[cur]:ptr[cur + 1]] if v != prev]
+            if not nxt:
+                break
+            prev, cur = cur, nxt[0]
+        d = xy[e] - xy[cur]
+        norm = np.linalg.norm(d)
+        out[k] = d / norm if norm > 0 else 0.0
+    return out
+
+
+def _breaks(ends: np.ndarray, frame: np.ndarray, xy: np.ndarray, graph: Any
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Free ends where the segmentation cut a device in two: the pairs to bridge and all cut ends.
+
+    Where a device crosses vessels or another device, the segmentation often
+    gives the crossing to the other class. The two cut ends then face each
+    other (each lies ahead of the other, within ``_BREAK_ANGLE_DEG`` of its
+    end direction), at most ``_BREAK_GAP_SHARE`` of the image's longer side
+    apart (a catheter crossing a bundle of vessels loses up to ~140 px of a
+    512² frame), and the straight gap between them is mostly labelled (not
+    background). Each end is bridged to its nearest such partner; every end
+    that faces one is a cut end (a fork of the skeleton at the cut gives two).
+
+    Returns
+    -------
+    i, j : int arrays
+        Pairs (indices into ``ends``) to bridge.
+    cut : bool array
+        Per end: faces a partner across a labelled gap.
+    """
+    none = np.zeros(0, int)
+    cut = np.zeros(ends.size, bool)
+    if ends.size < 2:
+        return none, none, cut
+    d = _end_directions(ends, xy, graph)
+    p = xy[ends]
+    v = p[None, :, :] - p[:, None, :]  # v[i, j]: from end i to end j
+    gap = np.linalg.norm(v, axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = v / gap[:, :, None]
+    ahead = np.einsum("ijk,ik->ij", u, d) >= np.cos(np.radians(_BREAK_ANGLE_DEG))  # j ahead of i
+    facing = ahead & ahead.T & (gap > 0) & (gap <= _BREAK_GAP_SHARE * max(frame.shape))
+    pairs = []
+    taken = np.zeros(ends.size, bool)
+    for i, j in sorted(zip(*np.nonzero(np.triu(facing)), strict=True), key=lambda ij: gap[ij]):
+        m = max(int(gap[i, j]), 2)
+        t = np.linspace(0.0, 1.0, m + 1)[1:-1, None]
+        pts = np.rint(p[i] + t * (p[j] - p[i])).astype(int)
+        if (frame[pts[:, 1], pts[:, 0]] != 0).mean() < _BREAK_LABELLED:
+            continue
+        cut[[i, j]] = True
+        if not (taken[i] or taken[j]):
+            pairs.append((i, j))
+            taken[[i, j]] = True
+    if not pairs:
+        return none, none, cut
+    i, j = np.array(pairs).T
+    return i, j, cut
 
 
 def find_keypoints(labels: Any, obj: str, *, min_area_px: int = 12, border_px: int = 4) -> KeyPointTrack:
