@@ -207,6 +207,16 @@ def test_root_at_a_catheter_tip_on_the_vessel_is_split_into_the_branch():
     assert ends[0] < 50 and ends[1] > 210
 
 
+def test_root_ignores_a_piece_of_vessel_labelled_catheter():
+    # A segmentation model labels 24 px of the vessel far from the ostium as catheter. The
+    # catheter itself comes down from the image's top edge and ends 4 px above the vessel's
+    # left end: that is the root, not the piece on the vessel (which lies nearer the vessel).
+    labels = scene([((60, 150), (220, 150), 4.5)],
+                   [((60, 0), (60, 139), 2.5), ((176, 150), (200, 150), 3.5)])
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
+    assert np.allclose(g.landmarks[g.root].point_px, (62, 150), atol=6.0)
+
+
 def test_root_of_a_cannulated_vessel_is_where_the_catheter_enters():
     # A coronary sinus catheter runs 60 px inside the vessel: its tip is on the skeleton, but the
     # ostium is the vessel end where it enters (the vessel mask holds most of the catheter there).

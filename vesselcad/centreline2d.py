@@ -59,6 +59,9 @@ CANNULATED_SHARE = 0.5
 #: The vessel end nearest the catheter tip is the root when it lies within this (px); the
 #: proximal vessel is often not yet (or no longer) filled with contrast next to the tip.
 TIP_REACH_PX = 120.0
+#: The distal end of the catheter that enters from the image border (as the phase matching finds
+#: it) is its tip when it lies within this of the vessel mask (px).
+TIP_ON_VESSEL_PX = 10.0
 
 @dataclass
 class Landmark:
@@ -759,7 +762,18 @@ def centreline_graph(
     for n in [n for n in w.nodes if w.degree(n) == 2]:
         w.splice(n)
     # Root: the end point nearest the catheter, else the widest end of the longest component.
-    tip = catheter_tip(cath, m) if cath is not None and cath.any() else None
+    tip = None
+    if cath is not None and cath.any():
+        # The distal end of the catheter that enters from the image border (the phase matching's
+        # key point: robust to a catheter cut by vessels and to pieces labelled catheter on the
+        # vessels) where it touches the vessels, else its skeleton end nearest the vessels (the
+        # catheter's last part can be hidden, e.g. inside a coronary sinus).
+        from .phase import find_keypoints
+
+        tip = find_keypoints(lab[None], "catheter").points_px[0]
+        if not (np.isfinite(tip).all() and m.any()
+                and _edt(~m)[int(round(tip[1])), int(round(tip[0]))] <= TIP_ON_VESSEL_PX):
+            tip = catheter_tip(cath, m)
     entry = None
     if tip is not None:
         if _cannulated(cath, m, rmap, tip):
