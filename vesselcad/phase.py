@@ -290,8 +290,8 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tupl
     cut = np.zeros(n, bool)
     cut[free[cut_free]] = True
     bridge = np.linalg.norm(xy[free[i]] - xy[free[j]], axis=1)
+    on = np.r_[own[src] & own[dst], np.zeros(i.size, bool)]  # edges on this device; bridges are not
     src, dst, wts = np.r_[src, free[i]], np.r_[dst, free[j]], np.r_[wts, bridge]
-    on = np.r_[own[src[: src.size - i.size]] & own[dst[: dst.size - i.size]], np.zeros(i.size, bool)]
     graph = coo_matrix((np.r_[wts, wts], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
     # A device enters the image at its border; its pieces that do (the projection can
     # split it, e.g. the aortic arch above the field) lead to the free distal end.
