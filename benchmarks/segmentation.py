@@ -8,6 +8,8 @@ Prints one table:
 * milliseconds per 512 x 512 frame with onnxruntime on ``--threads`` CPU threads;
 * the same for the int8 models: the bundled ``gated_unet_int8.onnx`` and the plain U-Net
   quantized the same way (``segmentation_onnx.quantize.quantize_int8``, 7-bit weights);
+* every model again with mirror test-time augmentation (``Segmenter(tta=True)``: the mean
+  class probabilities of the frame and its three mirror images; ``--no-tta`` skips these rows);
 
 next to the goals of issue 12 and, clearly apart, the paper's mIoU figures
 (measured on the paper's own real data, not comparable number for number).
@@ -78,6 +80,7 @@ def main() -> int:
     ap.add_argument("--phantoms", type=int, default=120)
     ap.add_argument("--cache", default=str(Path.home() / ".cache/vesselcad/seg_test_set.npz"))
     ap.add_argument("--no-int8", action="store_true")
+    ap.add_argument("--no-tta", action="store_true", help="skip the rows with mirror test-time augmentation")
     ap.add_argument("--json")
     ap.add_argument("--render", help="write overlay pictures into this folder")
     a = ap.parse_args()
@@ -96,12 +99,13 @@ def main() -> int:
         quantize_int8(models["plain U-Net fp32"], tmpdir / "unet_int8.onnx")
         models["plain U-Net int8"] = tmpdir / "unet_int8.onnx"
     rows = {}
-    for name, path in models.items():
-        r = evaluate_phantom(path, frames, labels, threads=a.threads)
-        r.update(evaluate_real(path, threads=a.threads))
-        r["ms_per_512_frame"] = time_inference(path, threads=a.threads)
-        r["size_mb"] = path.stat().st_size / 1e6
-        rows[name] = r
+    for tta in (False,) if a.no_tta else (False, True):
+        for name, path in models.items():
+            r = evaluate_phantom(path, frames, labels, threads=a.threads, tta=tta)
+            r.update(evaluate_real(path, threads=a.threads, tta=tta))
+            r["ms_per_512_frame"] = time_inference(path, threads=a.threads, tta=tta)
+            r["size_mb"] = path.stat().st_size / 1e6
+            rows[name + (" + mirror TTA" if tta else "")] = r
     cols = [("iou_vessel", "vessel IoU"), ("iou_catheter", "catheter IoU"), ("iou_balloon", "balloon IoU"),
             ("iou_lead", "lead IoU"), ("miou", "mIoU"), ("dice_mean", "real Dice"),
             ("ms_per_512_frame", f"ms/512² ({a.threads} thr)"), ("size_mb", "MB")]

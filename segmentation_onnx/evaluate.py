@@ -39,19 +39,20 @@ def iou_per_class(pred: np.ndarray, truth: np.ndarray, n: int = len(CLASSES)) ->
 
 
 def evaluate_phantom(model: str | os.PathLike, frames: np.ndarray, labels: np.ndarray,
-                     threads: int | None = None) -> dict[str, float]:
-    """Per-class IoU (``iou_<class>``) and ``miou`` (mean over the five classes)."""
-    pred = Segmenter(model, threads=threads)(frames)
+                     threads: int | None = None, tta: bool = False) -> dict[str, float]:
+    """Per-class IoU (``iou_<class>``) and ``miou`` (mean over the five classes); ``tta``: with
+    mirror test-time augmentation (``Segmenter(tta=True)``)."""
+    pred = Segmenter(model, threads=threads, tta=tta)(frames)
     iou = iou_per_class(pred, labels)
     return {**{f"iou_{c}": float(v) for c, v in zip(CLASSES, iou, strict=True)},
             "miou": float(np.nanmean(iou))}
 
 
 def evaluate_real(model: str | os.PathLike, real_dir: str | os.PathLike | None = None,
-                  threads: int | None = None) -> dict[str, object]:
+                  threads: int | None = None, tta: bool = False) -> dict[str, object]:
     """Vessel Dice/IoU on the real validation split: mean of the images and pooled pixels."""
     imgs, masks = load_real(REAL_VAL_IDS, real_dir)
-    seg = Segmenter(model, threads=threads)
+    seg = Segmenter(model, threads=threads, tta=tta)
     dices, ious, inter, tot, union = [], [], 0, 0, 0
     for im, gt in zip(imgs, masks, strict=True):
         p = seg(im) == 1
@@ -64,12 +65,12 @@ def evaluate_real(model: str | os.PathLike, real_dir: str | os.PathLike | None =
 
 
 def time_inference(model: str | os.PathLike, threads: int = 2, size: int = 512,
-                   repeats: int = 10) -> float:
+                   repeats: int = 10, tta: bool = False) -> float:
     """Median milliseconds per ``size`` x ``size`` frame (one frame per call, after a warm-up)."""
     from vesselcad.phantom import render
 
     frame = render(12345, rows=size, cols=size).frames[0]
-    seg = Segmenter(model, threads=threads, batch_size=1)
+    seg = Segmenter(model, threads=threads, batch_size=1, tta=tta)
     seg(frame)
     times = []
     for _ in range(repeats):
@@ -88,13 +89,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--real-dir")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", help="also write the scores here")
+    ap.add_argument("--tta", action="store_true", help="with mirror test-time augmentation")
     a = ap.parse_args(argv)
     frames, labels = render_test_set(a.phantoms, cache=a.cache)
     rows = {}
     for m in a.models:
-        r = evaluate_phantom(m, frames, labels, threads=a.threads)
-        r.update(evaluate_real(m, a.real_dir, threads=a.threads))
-        r["ms_per_512_frame"] = time_inference(m, threads=a.threads)
+        r = evaluate_phantom(m, frames, labels, threads=a.threads, tta=a.tta)
+        r.update(evaluate_real(m, a.real_dir, threads=a.threads, tta=a.tta))
+        r["ms_per_512_frame"] = time_inference(m, threads=a.threads, tta=a.tta)
         rows[Path(m).name] = r
         shown = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
         print(Path(m).name, json.dumps(shown))

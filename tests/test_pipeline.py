@@ -196,3 +196,33 @@ def test_runs_that_cannot_give_a_tree_say_why(tmp_path, capsys):
     (ra, la), (rb, lb) = run_of(VIEW_A), run_of(vc.CArmView(**{**VIEW_A.to_dict(), "primary_deg": 50.0}))
     rec = reconstruct(ra, rb, labels=(la, lb), solid=False, refine=False)  # 20 degrees: a warning
     assert any("only 20.0 deg apart" in w for w in rec.warnings)
+
+
+def test_chosen_frames_are_segmented_again_with_mirror_tta():
+    # Every frame is segmented once (fast, for the phase matching); the two chosen frames
+    # again with mirror test-time augmentation, and the tree comes from those labels.
+    (ra, la), (rb, lb) = run_of(VIEW_A), run_of(VIEW_B)
+    calls = []
+
+    class Recording(vc.Segmenter):
+        def __init__(self):  # no model: labels of the analytic tree, calls recorded
+            pass
+
+        def __call__(self, frames, *, return_proba=False, progress=False, tta=None):
+            x = np.asarray(frames)
+            calls.append((x.shape, tta))
+            lab = la if np.array_equal(x.reshape(-1, *x.shape[-2:])[0], ra.frames[0]) else lb
+            if x.ndim == 2:  # one chosen frame: its catheter is left out, to tell the calls apart
+                return np.where(lab[0] == 2, 0, lab[0]).astype(np.uint8)
+            return lab
+
+    rec = reconstruct(ra, rb, model=Recording(), solid=False, refine=False)
+    assert calls == [((3, 384, 384), False), ((3, 384, 384), False), ((384, 384), True), ((384, 384), True)]
+    assert not (rec.labels[0] == 2).any() and not (rec.labels[1] == 2).any()
+    assert ((rec.labels[0] == 1) == (la[0] == 1)).all()
+    calls.clear()
+    rec = reconstruct(ra, rb, model=Recording(), solid=False, refine=False, tta=False)
+    assert calls == [((3, 384, 384), False), ((3, 384, 384), False)]
+    assert (rec.labels[0] == la[0]).all()
+    with pytest.raises(vc.ArgumentError, match="tta"):
+        reconstruct(ra, rb, model=Recording(), tta="yes")

@@ -53,7 +53,7 @@ SUMMARY_COLUMNS = (
 
 _MANIFEST_ID = ("case", "id", "case_id")
 # reconstruct()'s defaults, so that the API and the CLI fingerprint the same options alike
-_DEFAULTS = {"method": "nurbs", "model": None, "objects": "auto", "refine": True, "solid": True}
+_DEFAULTS = {"method": "nurbs", "model": None, "objects": "auto", "refine": True, "solid": True, "tta": True}
 _RECORD = "case.json"
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -501,7 +501,7 @@ def run_batch(
         A progress bar over cases.
     **options
         Passed to :func:`vesselcad.reconstruct` (``method``, ``model``,
-        ``objects``, ``refine``, ``solid``).
+        ``objects``, ``refine``, ``solid``, ``tta``).
 
     Returns
     -------
@@ -520,7 +520,7 @@ def run_batch(
         raise ArgumentError(f"jobs: expected a positive integer, got {jobs!r}") from None
     if jobs < 1:
         raise ArgumentError(f"jobs: expected a positive integer, got {jobs}")
-    bad = set(options) - {"method", "model", "objects", "refine", "solid"}
+    bad = set(options) - set(_DEFAULTS)
     if bad:
         raise ArgumentError(f"unknown reconstruct option(s) for a batch: {', '.join(sorted(bad))}")
     options = {**_DEFAULTS, **options}

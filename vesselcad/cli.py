@@ -66,7 +66,8 @@ def _print_reconstruction(rec, paths: dict, out: Path) -> None:
 
 def _reconstruct_args(args: argparse.Namespace) -> dict:
     return {"method": args.method, "frames": args.frames, "model": args.model, "objects": args.objects,
-            "refine": not args.no_refine, "solid": not args.no_solid, "progress": not args.quiet}
+            "refine": not args.no_refine, "solid": not args.no_solid, "progress": not args.quiet,
+            "tta": not args.no_tta}
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -297,6 +298,9 @@ def _parser() -> argparse.ArgumentParser:
                        "version (~10x faster on CPUs with VNNI); default: the bundled fp32 model")
         q.add_argument("--objects", default="auto",
                        help="stationary object for phase matching: auto, balloon, catheter or lead")
+        q.add_argument("--no-tta", action="store_true",
+                       help="segment the two chosen frames once, without mirror test-time augmentation "
+                       "(the mean over the frame and its three mirror images)")
         q.add_argument("--no-refine", action="store_true", help="keep the files' geometry as it is")
         q.add_argument("--no-solid", action="store_true", help="centrelines only, no CAD solid")
         q.add_argument("--no-html", action="store_true", help="skip report.html")

@@ -418,6 +418,7 @@ def reconstruct(
     refine: bool = True,
     solid: bool = True,
     progress: bool = False,
+    tta: bool = True,
 ) -> Reconstruction:
     """3D vessel tree from two X-ray angiography runs of the same vessels (the whole method).
 
@@ -452,6 +453,12 @@ def reconstruct(
         Also build the fused OCCT solid.
     progress : bool
         Progress bars for the long stages.
+    tta : bool
+        Segment the two chosen frames again with mirror test-time
+        augmentation (``Segmenter(tta=True)``: the mean over the frame and
+        its three mirror images) before their centrelines are traced; every
+        frame of both runs is segmented once without it for the phase
+        matching. Only with the model (not with ``labels``).
 
     Returns
     -------
@@ -469,6 +476,8 @@ def reconstruct(
     """
     if method not in ("nurbs", "epipolar"):
         raise ArgumentError(f"method: expected 'nurbs' or 'epipolar', got {method!r}")
+    if not isinstance(tta, (bool, np.bool_)):
+        raise ArgumentError(f"tta: expected True or False, got {tta!r}")
     timings: dict[str, float] = {}
     warn: list[str] = []
     t = time.perf_counter()
@@ -493,8 +502,8 @@ def reconstruct(
         la, lb = _check_labels(labels[0], ra, "labels[0]"), _check_labels(labels[1], rb, "labels[1]")
     else:
         seg = model if isinstance(model, Segmenter) else Segmenter(model)
-        la = seg(ra.frames, progress=progress)
-        lb = seg(rb.frames, progress=progress)
+        la = seg(ra.frames, progress=progress, tta=False)
+        lb = seg(rb.frames, progress=progress, tta=False)
     timings["segmentation"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -506,9 +515,15 @@ def reconstruct(
     warn += [f"phase: {w}" for w in phase.warnings]
     timings["phase"] = time.perf_counter() - t
 
-    t = time.perf_counter()
     fa, fb = phase.frame_a, phase.frame_b
     lab_a, lab_b = la[fa], lb[fb]
+    if labels is None and tta:
+        # the two frames the tree comes from: mirror test-time augmentation
+        t = time.perf_counter()
+        lab_a, lab_b = seg(ra.frames[fa], tta=True), seg(rb.frames[fb], tta=True)
+        timings["segmentation"] += time.perf_counter() - t
+
+    t = time.perf_counter()
     graphs = []
     for lab, run, name in ((lab_a, ra, "A"), (lab_b, rb, "B")):
         if not (lab == 1).any():
