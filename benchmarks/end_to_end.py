@@ -49,7 +49,7 @@ STAGES = ("segmentation", "phase", "graphs", "refinement", "matching", "centreli
 
 
 def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
-             segmenter: vc.Segmenter | None = None, tta: bool = True) -> dict:
+             segmenter: vc.Segmenter | None = None, tta: str = "chosen") -> dict:
     mis = 1.5 if variant.endswith("1.5deg") else 0.0
     case = generate_case(seed, kind, n_frames, miscalibration_deg=mis)
     d = workdir / f"{seed}_{variant}"
@@ -118,8 +118,9 @@ def main() -> None:
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--model", metavar="ONNX", help="segmentation model of the 'model' variant: a file, "
                     "'fp32' or 'int8' (default: the bundled fp32 model)")
-    ap.add_argument("--no-tta", action="store_true", help="model variant: segment the chosen frames without "
-                    "mirror test-time augmentation (reconstruct(tta=False))")
+    ap.add_argument("--tta", choices=["chosen", "all", "none"], default="chosen",
+                    help="model variant: mirror test-time augmentation of the chosen frames (default), of "
+                    "every frame, or none (reconstruct(tta=...))")
     args = ap.parse_args()
     variants = args.variants.split(",")
     segmenter = vc.Segmenter(args.model) if "model" in variants else None
@@ -130,7 +131,7 @@ def main() -> None:
             seed, kind = args.first_seed + i, KINDS[i % 3]
             n_frames = 40 + (i * 7) % 21
             for v in variants:
-                r = run_case(seed, kind, n_frames, v, Path(tmp), segmenter, tta=not args.no_tta)
+                r = run_case(seed, kind, n_frames, v, Path(tmp), segmenter, tta=args.tta)
                 rows.append(r)
                 t = r.get("truth", {})
                 print(f"seed {seed} {kind} {n_frames} frames {v}: {r['status'][:80]}; 3D mean "
@@ -138,7 +139,7 @@ def main() -> None:
                       f"ostium {t.get('ostium_mm', float('nan')):.2f} mm, "
                       f"{r['seconds']:.1f} s", file=sys.stderr, flush=True)
     print(f"# end to end: {args.cases} phantom cases x {len(variants)} variants, 512², unsynchronized "
-          f"40-60 frames" + (", model variant without mirror TTA" if args.no_tta else ""))
+          f"40-60 frames, model variant with mirror TTA of {args.tta} frames")
     print(f"# {platform.platform()}, python {platform.python_version()}, {os.cpu_count()} CPUs, "
           f"{time.time() - t0:.0f} s total\n")
     print(table(rows))

@@ -220,9 +220,10 @@ def test_chosen_frames_are_segmented_again_with_mirror_tta():
     assert calls == [((3, 384, 384), False), ((3, 384, 384), False), ((384, 384), True), ((384, 384), True)]
     assert not (rec.labels[0] == 2).any() and not (rec.labels[1] == 2).any()
     assert ((rec.labels[0] == 1) == (la[0] == 1)).all()
-    calls.clear()
-    rec = reconstruct(ra, rb, model=Recording(), solid=False, refine=False, tta=False)
-    assert calls == [((3, 384, 384), False), ((3, 384, 384), False)]
-    assert (rec.labels[0] == la[0]).all()
+    for mode, frames_tta in (("none", False), (False, False), ("all", True)):
+        calls.clear()
+        rec = reconstruct(ra, rb, model=Recording(), solid=False, refine=False, tta=mode)
+        assert calls == [((3, 384, 384), frames_tta), ((3, 384, 384), frames_tta)]
+        assert (rec.labels[0] == la[0]).all()
     with pytest.raises(vc.ArgumentError, match="tta"):
         reconstruct(ra, rb, model=Recording(), tta="yes")

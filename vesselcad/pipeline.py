@@ -46,6 +46,8 @@ MAX_REPROJECTION_MAX_PX = 10.0
 #: 3D points farther than this from the isocentre are outside the heart (the isocentre is set on
 #: the heart; coronary trees span about +-60 mm around it) (mm).
 MAX_RADIUS_FROM_ISOCENTRE_MM = 100.0
+#: ``reconstruct(tta=...)``: which frames are segmented with mirror test-time augmentation.
+TTA_MODES = ("chosen", "all", "none")
 
 
 class ReconstructionError(VesselcadError, RuntimeError):
@@ -418,7 +420,7 @@ def reconstruct(
     refine: bool = True,
     solid: bool = True,
     progress: bool = False,
-    tta: bool = True,
+    tta: str | bool = "chosen",
 ) -> Reconstruction:
     """3D vessel tree from two X-ray angiography runs of the same vessels (the whole method).
 
@@ -453,12 +455,16 @@ def reconstruct(
         Also build the fused OCCT solid.
     progress : bool
         Progress bars for the long stages.
-    tta : bool
-        Segment the two chosen frames again with mirror test-time
-        augmentation (``Segmenter(tta=True)``: the mean over the frame and
-        its three mirror images) before their centrelines are traced; every
-        frame of both runs is segmented once without it for the phase
-        matching. Only with the model (not with ``labels``).
+    tta : {'chosen', 'all', 'none'}
+        Mirror test-time augmentation of the segmentation
+        (``Segmenter(tta=True)``: the mean over the frame and its three
+        mirror images, four network calls a frame). ``'chosen'`` (default):
+        every frame is segmented once for the phase matching, and the two
+        chosen frames again with it before their centrelines are traced;
+        ``'all'``: every frame with it (better catheter labels for the phase
+        matching, ~4x the segmentation time); ``'none'``. ``True`` and
+        ``False`` mean ``'chosen'`` and ``'none'``. Only with the model (not
+        with ``labels``).
 
     Returns
     -------
@@ -476,8 +482,10 @@ def reconstruct(
     """
     if method not in ("nurbs", "epipolar"):
         raise ArgumentError(f"method: expected 'nurbs' or 'epipolar', got {method!r}")
-    if not isinstance(tta, (bool, np.bool_)):
-        raise ArgumentError(f"tta: expected True or False, got {tta!r}")
+    if isinstance(tta, (bool, np.bool_)):
+        tta = "chosen" if tta else "none"
+    if tta not in TTA_MODES:
+        raise ArgumentError(f"tta: expected one of {TTA_MODES}, got {tta!r}")
     timings: dict[str, float] = {}
     warn: list[str] = []
     t = time.perf_counter()
@@ -502,8 +510,8 @@ def reconstruct(
         la, lb = _check_labels(labels[0], ra, "labels[0]"), _check_labels(labels[1], rb, "labels[1]")
     else:
         seg = model if isinstance(model, Segmenter) else Segmenter(model)
-        la = seg(ra.frames, progress=progress, tta=False)
-        lb = seg(rb.frames, progress=progress, tta=False)
+        la = seg(ra.frames, progress=progress, tta=tta == "all")
+        lb = seg(rb.frames, progress=progress, tta=tta == "all")
     timings["segmentation"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -517,7 +525,7 @@ def reconstruct(
 
     fa, fb = phase.frame_a, phase.frame_b
     lab_a, lab_b = la[fa], lb[fb]
-    if labels is None and tta:
+    if labels is None and tta == "chosen":
         # the two frames the tree comes from: mirror test-time augmentation
         t = time.perf_counter()
         lab_a, lab_b = seg(ra.frames[fa], tta=True), seg(rb.frames[fb], tta=True)
