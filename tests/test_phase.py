@@ -280,10 +280,9 @@ def test_pair_choice_prefers_filled_frames():
     la, lb = case.run_a.labels, case.run_b.labels
     area_a = (la == 1).sum(axis=(1, 2)) / (la == 1).sum(axis=(1, 2)).max()
     area_b = (lb == 1).sum(axis=(1, 2)) / (lb == 1).sum(axis=(1, 2)).max()
-    # (the scenario needs the vessel term's weight of 10 mm; at the default 30 the best pair is filled anyway)
-    off = match_phase(ra, rb, la, lb, prefer_fill=1.1, vessel_weight=10.0)
+    off = match_phase(ra, rb, la, lb, prefer_fill=1.1)
     assert min(area_a[off.frame_a], area_b[off.frame_b]) < 0.9
-    m = match_phase(ra, rb, la, lb, vessel_weight=10.0)
+    m = match_phase(ra, rb, la, lb)
     assert area_a[m.frame_a] >= 0.9 and area_b[m.frame_b] >= 0.9
     assert m.to_dict()["fill"] == [round(float(area_a[m.frame_a]), 3), round(float(area_b[m.frame_b]), 3)]
     # Still a pair at the same motion phase: the two frames' true trees agree (both frames are in
@@ -341,7 +340,7 @@ def test_vessels_choose_a_pair_whose_trees_agree():
     tree_a = np.vstack([b["points"] for b in case.run_a.trees[m.frame_a]["branches"]])
     tree_b = np.vstack([b["points"] for b in case.run_b.trees[m.frame_b]["branches"]])
     assert np.mean(np.linalg.norm(tree_a - tree_b, axis=1)) < 0.5
-    assert m.vessel_weight == 30.0 and not m.ecg
+    assert m.vessel_weight == 10.0 and not m.ecg
     assert m.to_dict()["vessel_consistency"] == pytest.approx(m.consistency[m.frame_a, m.frame_b], abs=1e-4)
     with pytest.raises(vc.VesselcadError, match="vessel_weight"):
         match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, vessel_weight=-1.0)

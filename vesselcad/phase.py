@@ -687,7 +687,7 @@ def match_phase(
     use_ecg: bool | None = None,
     ecg_tolerance: float = 0.06,
     ecg_weight: float = 10.0,
-    vessel_weight: float = 30.0,
+    vessel_weight: float = 10.0,
     pair: tuple[int, int] | None = None,
     window: int | None = None,
 ) -> PhaseMatch:
@@ -734,14 +734,9 @@ def match_phase(
         :func:`epipolar_consistency` of its vessel masks (mean difference of
         vessel crossings per epipolar line; >= 0, 0: off). A single key point
         sees only its own motion across the epipolar planes; the vessels show
-        the motion of the whole tree. At 30 (default), a pair whose masks
-        differ by one crossing on a tenth of the lines must agree 3 mm better
-        at the key point to win. Used when the labels of both runs hold vessel
-        pixels. 30 rather than 10 since 2026-12-02: with a model's labels the
-        key point (a catheter tip the model finds 5 px or more off in most
-        frames) misleads more often than the vessels (docs/results.md: end to
-        end on 24 phantom cases 5.16 -> 3.87 mm with the model's labels, 2.00
-        -> 2.05 mm with the true ones).
+        the motion of the whole tree. At 10, a pair whose masks differ by one
+        crossing on a tenth of the lines must agree 1 mm better at the key
+        point to win. Used when the labels of both runs hold vessel pixels.
     pair : (int, int), optional
         Force this frame pair (its error is still reported).
     window : int, optional
