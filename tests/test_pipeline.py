@@ -218,6 +218,9 @@ def test_chosen_frames_are_segmented_again_with_mirror_tta():
 
     rec = reconstruct(ra, rb, model=Recording(), solid=False, refine=False)
     assert calls == [((3, 384, 384), False), ((3, 384, 384), False), ((384, 384), True), ((384, 384), True)]
+    # the model's labels: the vessels weigh more in the phase matching than given labels do
+    assert rec.phase.vessel_weight == 30.0
+    assert reconstruct(ra, rb, labels=(la, lb), solid=False, refine=False).phase.vessel_weight == 10.0
     assert not (rec.labels[0] == 2).any() and not (rec.labels[1] == 2).any()
     assert ((rec.labels[0] == 1) == (la[0] == 1)).all()
     for mode, frames_tta in (("none", False), (False, False), ("all", True)):

@@ -48,6 +48,11 @@ MAX_REPROJECTION_MAX_PX = 10.0
 MAX_RADIUS_FROM_ISOCENTRE_MM = 100.0
 #: ``reconstruct(tta=...)``: which frames are segmented with mirror test-time augmentation.
 TTA_MODES = ("chosen", "all", "none")
+#: Phase matching's weight of the vessels' epipolar consistency (mm per unit, ``match_phase``'s
+#: ``vessel_weight``) when the labels come from the segmentation model: its catheter tips (the key
+#: point) are 5 px or more off in most frames, so the vessels must count more than with true
+#: labels (``match_phase``'s default of 10, used for labels given to ``reconstruct``); docs/phase.md.
+MODEL_VESSEL_WEIGHT_MM = 30.0
 
 
 class ReconstructionError(VesselcadError, RuntimeError):
@@ -441,6 +446,10 @@ def reconstruct(
     labels : (array, array), optional
         Segmentation labels of every frame of each run (N, H, W) instead of
         running the model (0 background, 1 vessel, 2 catheter, 3 balloon, 4 lead).
+        The phase matching weighs the vessels' epipolar consistency at
+        ``match_phase``'s default (10 mm) with given labels and at
+        :data:`MODEL_VESSEL_WEIGHT_MM` (30 mm) with the model's, whose
+        catheter tips are less reliable (``report.json``: ``phase.vessel_weight``).
     objects : 'auto', str or list of str
         Stationary object(s) for phase matching: 'balloon', 'catheter', 'lead'.
     geometry_a, geometry_b : dict, CArmView or path, optional
@@ -516,7 +525,8 @@ def reconstruct(
 
     t = time.perf_counter()
     try:
-        phase = match_phase(ra, rb, la, lb, objects=objects, pair=frames)
+        phase = match_phase(ra, rb, la, lb, objects=objects, pair=frames,
+                            **({} if labels is not None else {"vessel_weight": MODEL_VESSEL_WEIGHT_MM}))
     except VesselcadError as exc:
         raise ReconstructionError(f"motion phase matching: {exc}. Pass frames=(i, j) (CLI: --frames I J) "
                                   "to choose the frame pair yourself") from None
