@@ -149,7 +149,7 @@ class Segmenter:
         left-right, up-down and doubly mirrored copies, each run through the
         network and mirrored back. Four times the work; on the held-out
         phantom frames vessel / catheter / balloon IoU 0.814 / 0.711 / 0.712
-        -> 0.829 / 0.734 / 0.757 and real vessel Dice 0.745 -> 0.755 (fp32,
+        -> 0.829 / 0.734 / 0.757 and real vessel Dice 0.745 -> 0.754 (fp32,
         MODEL_CARD.md). Off by default: whole runs are segmented for the phase
         matching, where speed counts; :func:`vesselcad.reconstruct` re-segments
         its two chosen frames with it.
