@@ -1,5 +1,6 @@
 """Motion phase matching (paper §2.3) against phantom ground truth."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -72,6 +73,29 @@ def test_catheter_cut_by_vessels_keeps_its_tip():
     lab[0, 80:130, :] = 0
     tip = find_keypoints(lab, "catheter").points_px[0]
     assert np.linalg.norm(tip - [128.0, 77.5]) < 2.0
+
+
+def test_catheter_whose_filled_shaft_is_taken_for_vessel_keeps_its_tip():
+    # A guiding catheter comes up from the bottom edge and leaves at the top (its ascending
+    # shaft, column 60); its descending part comes back down from the top edge (column 30),
+    # crosses the shaft and ends at the ostium (120, 140), where the vessel tree starts.
+    # The segmentation takes the contrast-filled descending part for vessel down to 8 px past
+    # the crossing: the distal piece, labelled catheter, reaches the edge only across that
+    # short labelled gap, and its free end is the tip (within the catheter's width of the end
+    # of the drawn line, whose square end is no round cap).
+    v, c = LABELS["vessel"], LABELS["catheter"]
+    lab = np.zeros((1, 256, 256), np.uint8)
+    cv2.line(lab[0], (30, 0), (30, 80), v, 5)
+    cv2.line(lab[0], (30, 80), (70, 107), v, 5)
+    cv2.line(lab[0], (70, 107), (120, 140), c, 5)
+    cv2.line(lab[0], (123, 142), (200, 200), v, 7)
+    cv2.line(lab[0], (60, 0), (60, 255), c, 5)
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [120.0, 140.0]) < 4.0
+    # The same piece with background in the gap is no part of the device that enters: no tip.
+    lab[0][(lab[0] == v) & (np.arange(256)[None, :] > 50) & (np.arange(256)[None, :] < 75)] = 0
+    lab[0, :, 58:63] = c
+    assert np.isnan(find_keypoints(lab, "catheter").points_px[0]).all()
 
 
 def test_lead_crossing_the_catheter_keeps_its_tip():

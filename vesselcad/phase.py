@@ -224,6 +224,9 @@ def _sample(mask: np.ndarray, pts: np.ndarray) -> np.ndarray:
 _BREAK_GAP_SHARE = 0.3  # of the image's longer side
 _BREAK_ANGLE_DEG = 30.0
 _BREAK_LABELLED = 0.7
+# Pieces of one device split off where it crosses itself or vessels (see _joins): largest gap.
+_JOIN_MIN_PX = 6.0
+_JOIN_RADII = 4.0  # device radii
 # Largest share of the path from the border to a device's tip that may run on other devices.
 _MAX_OFF_SHARE = 0.5
 
@@ -297,6 +300,19 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tupl
     # split it, e.g. the aortic arch above the field) lead to the free distal end.
     _, comp = connected_components(graph, directed=False)
     entering = np.isin(comp, np.unique(comp[at_border]))
+    # A piece split off where the device crosses itself or vessels (a guiding catheter's
+    # contrast-filled shaft labelled vessel where its distal part crosses it) is joined to the
+    # nearest piece that enters the image across a short labelled gap.
+    join_px = max(_JOIN_MIN_PX, _JOIN_RADII * float(dt.max()))
+    joins = _joins(xy, comp, entering, frame, join_px)
+    if joins.size:
+        a, b = joins.T
+        gap = np.linalg.norm(xy[a] - xy[b], axis=1)
+        on = np.r_[on, np.zeros(a.size, bool)]
+        src, dst, wts = np.r_[src, a], np.r_[dst, b], np.r_[wts, gap]
+        graph = coo_matrix((np.r_[wts, wts], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
+        _, comp = connected_components(graph, directed=False)
+        entering = np.isin(comp, np.unique(comp[at_border]))
     ends = free[entering[free] & ~cut[free]]
     if ends.size == 0:
         return None, "no free end"
@@ -333,6 +349,47 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tupl
     boundary = ray[max(last - 1, 0)] + 0.05 * direction  # half a step past the last inside sample
     # A round cap ends half a pixel beyond the last covered pixel centre, one radius past its centre.
     return boundary + (0.5 - radius) * direction, ""
+
+
+def _joins(xy: np.ndarray, comp: np.ndarray, entering: np.ndarray, frame: np.ndarray,
+           join_px: float) -> np.ndarray:
+    """Edges (k, 2) joining skeleton pieces that do not enter the image to pieces that do.
+
+    Each such piece is joined once, by its skeleton point nearest to an entering
+    piece (or to a piece joined before it), when that gap is at most ``join_px``
+    and its straight line is mostly labelled (not background).
+    """
+    from scipy.spatial import cKDTree
+
+    reach = entering.copy()
+    out: list[tuple[int, int]] = []
+    for _ in range(16):  # a few pieces per frame: grow the reached set piece by piece
+        if reach.all():
+            break
+        free = np.nonzero(~reach)[0]
+        d, k = cKDTree(xy[reach]).query(xy[free], distance_upper_bound=join_px)
+        ok = np.isfinite(d)
+        if not ok.any():
+            break
+        targets = np.nonzero(reach)[0]
+        order = np.argsort(d[ok])
+        a_all, b_all = free[ok][order], targets[k[ok][order]]
+        _, first = np.unique(comp[a_all], return_index=True)
+        joined = False
+        for i in first[np.argsort(d[ok][order][first])]:
+            a, b = int(a_all[i]), int(b_all[i])
+            m = max(int(np.linalg.norm(xy[a] - xy[b])), 2)
+            t = np.linspace(0.0, 1.0, m + 1)[1:-1, None]
+            pts = np.rint(xy[a] + t * (xy[b] - xy[a])).astype(int)
+            if (frame[pts[:, 1], pts[:, 0]] != 0).mean() < _BREAK_LABELLED:
+                continue
+            out.append((a, b))
+            reach |= comp == comp[a]
+            joined = True
+            break  # re-measure from the grown set
+        if not joined:
+            break
+    return np.array(out, int).reshape(-1, 2)
 
 
 def _end_directions(ends: np.ndarray, xy: np.ndarray, graph: Any, back: int = 10) -> np.ndarray:
