@@ -634,13 +634,16 @@ def test_wall_seams_keep_clear_of_the_other_vessels(y_solid):
         seam_angles(specs, n_angles=0)
 
 
-def test_edges_of_a_few_micrometres_are_merged_into_their_neighbours():
+def test_edges_of_a_few_micrometres_are_merged_into_their_neighbours(monkeypatch):
     # Real validation mask 24, draped: where its walls meet, the union leaves five edges
     # of 3-17 um (walls meeting almost at one point). Four of them merge into their
     # neighbours (ShapeFix leaves one of 12 um between a dome and a wall); the solid stays
     # one valid watertight solid of the same volume, and every face keeps its branch and role.
+    # (Built as before stubs were joined to their continuation: the 1.7 mm stub of this tree
+    # is where most of those edges were; joined, the shortest edge is 80 um.)
     from vesselcad.kernel.solid import SHORT_EDGE_MM, edge_lengths
 
+    monkeypatch.setattr("vesselcad.tree.STUB_RADII", 0.0)
     solid = _draped_mask("24_gt.png").separated().solid()
     before = np.array(edge_lengths(solid.shape))
     assert before.min() < 0.005 and np.count_nonzero(before < SHORT_EDGE_MM) == 5
@@ -913,3 +916,44 @@ def test_a_tree_with_two_roots_keeps_the_larger_and_says_why():
     assert solid.failed == {5: "the root of another tree (1 branch); one solid holds one tree: the largest, "
                                 "from root 0 (2 branches)"}
     assert solid.volume == pytest.approx(_tree(y).solid().volume, rel=1e-9)
+
+
+def test_a_stub_between_two_close_junctions_joins_the_vessel_after_it():
+    # A reconstruction can leave a piece of ~1 mm between two junctions: parent r = 1.5 along z
+    # to z = 30, a 1 mm stub (r = 1.2) along x from its end, and a vessel (r = 1) leaving the
+    # stub's end. The stub is shorter than its radius and the parent's together (2.7 mm): it
+    # becomes the start of the vessel after it when that continues it within 90 degrees, else
+    # it is left out (inside the parent but for its cap) and the vessel starts on the parent.
+    # Swept as a pipe of its own, such a cap inside the parent's domed end took OCCT's fuse
+    # 90 s on a tree of the end-to-end benchmark.
+    def tree(stub_mm, turn):
+        d = np.array([np.cos(turn), 0.0, -np.sin(turn)])
+        return _tree([
+            {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 30).tolist(),
+             "radius": [1.5] * 30},
+            {"id": 1, "parent": 0, "name": "stub", "points": _line([0, 0, 30], [1, 0, 0], stub_mm).tolist(),
+             "radius": [1.2] * 30},
+            {"id": 2, "parent": 1, "name": "next", "points": _line([stub_mm, 0, 30], d, 20).tolist(),
+             "radius": [1.0] * 30},
+        ])
+
+    joined = tree(1.0, np.radians(45.0)).solid()
+    assert not joined.failed and sorted(p.branch_id for p in joined.pipes) == [0, 2]
+    assert any("branch 2 (next): starts with branch 1, a stub of 1.0 mm" in w for w in joined.warnings)
+    # the joined vessel starts where the stub did: on the parent's axis near its end (the lead-in
+    # of a child that starts at its parent's end begins a radius inside it)
+    spine = next(s for s in joined.specs if s["id"] == 2)["spine"]
+    x, y, z = spine(spine.t[3])
+    assert np.hypot(x, y) < 0.1 and 30.0 - 2 * 1.5 <= z <= 30.0
+    # turning back by 135 degrees: no continuation, the stub is left out
+    left = tree(1.0, np.radians(135.0)).solid()
+    assert set(left.failed) == {1} and sorted(p.branch_id for p in left.pipes) == [0, 2]
+    assert "stub of 1.0 mm" in left.failed[1] and "children (2) start on branch 0" in left.failed[1]
+    for solid in (joined, left):
+        chk = solid.check()
+        assert chk["valid"] and chk["watertight"] and chk["solids"] == 1
+    # the centrelines keep it: only the solid's pipes change
+    assert len(tree(1.0, 0.5)) == 3
+    # 3 mm is longer than the two radii together: a vessel of its own, kept
+    longer = tree(3.0, np.radians(45.0)).solid()
+    assert not longer.failed and sorted(p.branch_id for p in longer.pipes) == [0, 1, 2]

@@ -55,6 +55,9 @@ CURVATURE_FACTOR = 0.8
 #: A child's start radius is kept below this share of its parent's radius, so the
 #: child's start circle lies strictly inside the parent (no tangent faces).
 CHILD_RADIUS_SHARE = 0.9
+#: A child shorter than this many times its radius and its parent's together at its start
+#: is a stub, left out of the solid (:meth:`VesselTree.pipe_specs`).
+STUB_RADII = 1.0
 #: A child starting farther than this many parent radii from the parent's
 #: centreline is not pulled onto it.
 MAX_START_GAP_RADII = 2.0
@@ -747,11 +750,18 @@ class VesselTree:
         'radius', 'cuts', 'end', 'warnings'}``; ``cuts`` are the spine parameters (mm)
         where a pipe that would overlap itself is cut into pieces (empty for
         almost every branch); ``end`` is ``'dome'`` for a vessel whose children
-        start at its end (closed with a hemisphere there), else ``'flat'``.
+        start at its end (closed with a hemisphere there), else ``'flat'``;
+        a child shorter than ``STUB_RADII`` times its and its parent's radii
+        where it starts (a 1 mm piece between two close junctions of a
+        reconstruction, which can cost OCCT's fuse minutes inside the parent's
+        domed end) becomes the start of the child that continues it, or,
+        without one, is left out: ``stubs`` maps such ids of this branch's
+        children to the reason (their children start on this branch).
         """
         tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
         if merge:
             tree = tree.merged(max_merge_angle_deg, tol_mm)
+        tree, stubs = _without_stubs(tree)
         specs = []
         by_id: dict[int, dict[str, Any]] = {}
         swept: dict[int, TreeBranch] = {}  # each branch as its pipe is swept (parents come first)
@@ -776,7 +786,8 @@ class VesselTree:
             warns += w
             swept[bid] = replace(b, spline=spine, radius_law=law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
-                          "radius": law, "cuts": cuts, "end": "flat", "warnings": warns})
+                          "radius": law, "cuts": cuts, "end": "flat", "warnings": warns,
+                          "stubs": stubs.get(b.id, {})})
             by_id[b.id] = specs[-1]
         return specs
 
@@ -819,7 +830,7 @@ class VesselTree:
             s["seam_deg"] = seams[s["id"]]  # wall seams clear of the other vessels' walls
         t1 = time.perf_counter()
         roots = [s for s in specs if s["parent"] is None]
-        failed: dict[int, str] = {}
+        failed: dict[int, str] = {sid: why for s in specs for sid, why in s.get("stubs", {}).items()}
         if len(roots) > 1:
             sizes = {r["id"]: 0 for r in roots}
             owner: dict[int, int] = {}
@@ -889,6 +900,65 @@ def _project_params(spline: interpolate.BSpline, points: np.ndarray, step: float
     den = np.einsum("ij,ij->i", d1, d1) + np.einsum("ij,ij->i", diff, d2)
     s = s - np.where(np.abs(den) > 1e-12, num / np.where(np.abs(den) > 1e-12, den, 1.0), 0.0)
     return np.clip(s, a, b)
+
+
+def _without_stubs(tree: VesselTree) -> tuple[VesselTree, dict[int, dict[int, str]]]:
+    """The tree without stubs: children shorter than ``STUB_RADII`` (r_parent + r_child) at their start.
+
+    A stub with children becomes the start of the child that continues it most
+    straightly (end and start tangents less than 90 degrees apart; merged as
+    in :meth:`VesselTree.merged`, whatever the angle); its other children then
+    start on that vessel. A stub without such a child is left out and its
+    children start on its parent. Returns the tree and, per parent id, the
+    left-out stubs with the reason.
+    """
+    branches = {b.id: replace(b, warnings=list(b.warnings)) for b in tree.branches}
+    stubs: dict[int, dict[int, str]] = {}
+    touched = False
+    changed = True
+    while changed:
+        changed = False
+        for b in list(branches.values()):
+            if b.parent is None or b.parent not in branches:
+                continue
+            par = branches[b.parent]
+            s = b.parent_s_mm if b.parent_s_mm is not None else par.domain[1]
+            rp, rc = float(par.radius_at(s)), float(b.radius_at(b.domain[0]))
+            if b.length_mm >= STUB_RADII * (rp + rc):
+                continue
+            touched = changed = True
+            kids = [c for c in branches.values() if c.parent == b.id]
+            cos = [float(b.tangent("end") @ c.tangent("start")) for c in kids]
+            if kids and max(cos) >= 0.0:
+                c = kids[int(np.argmax(cos))]
+                joined = _merge_pair(b, c, TOL_MM)
+                joined.warnings.append(f"starts with branch {b.id}, a stub of {b.length_mm:.1f} mm "
+                                       f"(shorter than its radius and its parent's together) between two "
+                                       f"junctions")
+                branches[c.id] = replace(joined, id=c.id, name=c.name, parent=par.id, parent_s_mm=None)
+                for o in kids:
+                    if o.id != c.id:
+                        o.parent, o.parent_s_mm = c.id, None
+                new_parent = c.id
+            else:
+                for o in kids:
+                    o.parent, o.parent_s_mm = par.id, None
+                moved = (f"; its children ({', '.join(str(o.id) for o in kids)}) start on branch {par.id}"
+                         if kids else "")
+                stubs.setdefault(par.id, {})[b.id] = (
+                    f"a stub of {b.length_mm:.1f} mm, shorter than its radius and its parent's together "
+                    f"({rc:.1f} + {rp:.1f} mm) where it starts: left out of the solid (inside branch "
+                    f"{par.id} but for its end cap){moved}")
+                new_parent = par.id
+            for sid, why in stubs.pop(b.id, {}).items():  # stubs left out of the stub itself
+                stubs.setdefault(new_parent, {})[sid] = why
+            del branches[b.id]
+            break
+    if not touched:
+        return tree, {}
+    out = VesselTree(list(branches.values()))
+    out._locate_children()
+    return out, stubs
 
 
 def _merge_pair(p: TreeBranch, c: TreeBranch, tol_mm: float) -> TreeBranch:
