@@ -922,8 +922,8 @@ def test_a_stub_between_two_close_junctions_joins_the_vessel_after_it():
     # A reconstruction can leave a piece of ~1 mm between two junctions: parent r = 1.5 along z
     # to z = 30, a 1 mm stub (r = 1.2) along x from its end, and a vessel (r = 1) leaving the
     # stub's end. The stub is shorter than its radius and the parent's together (2.7 mm): it
-    # becomes the start of the vessel after it when that continues it within 90 degrees, else
-    # it is left out (inside the parent but for its cap) and the vessel starts on the parent.
+    # becomes the start of the vessel after it when that continues it within 90 degrees; one
+    # without children is left out (inside the parent but for its cap).
     # Swept as a pipe of its own, such a cap inside the parent's domed end took OCCT's fuse
     # 90 s on a tree of the end-to-end benchmark.
     def tree(stub_mm, turn):
@@ -945,11 +945,15 @@ def test_a_stub_between_two_close_junctions_joins_the_vessel_after_it():
     spine = next(s for s in joined.specs if s["id"] == 2)["spine"]
     x, y, z = spine(spine.t[3])
     assert np.hypot(x, y) < 0.1 and 30.0 - 2 * 1.5 <= z <= 30.0
-    # turning back by 135 degrees: no continuation, the stub is left out
-    left = tree(1.0, np.radians(135.0)).solid()
-    assert set(left.failed) == {1} and sorted(p.branch_id for p in left.pipes) == [0, 2]
-    assert "stub of 1.0 mm" in left.failed[1] and "children (2) start on branch 0" in left.failed[1]
-    for solid in (joined, left):
+    # turning back by 135 degrees: no continuation, the stub is kept (the vessel starts at its end,
+    # outside the parent)
+    kept = tree(1.0, np.radians(135.0)).solid()
+    assert not kept.failed and sorted(p.branch_id for p in kept.pipes) == [0, 1, 2]
+    # without a child it is left out
+    alone = _tree([b for b in tree(1.0, 0.5).to_dict()["branches"] if b["id"] != 2]).solid()
+    assert set(alone.failed) == {1} and sorted(p.branch_id for p in alone.pipes) == [0]
+    assert "stub of 1.0 mm" in alone.failed[1] and "inside branch 0 but for its end cap" in alone.failed[1]
+    for solid in (joined, kept, alone):
         chk = solid.check()
         assert chk["valid"] and chk["watertight"] and chk["solids"] == 1
     # the centrelines keep it: only the solid's pipes change

@@ -755,8 +755,8 @@ class VesselTree:
         where it starts (a 1 mm piece between two close junctions of a
         reconstruction, which can cost OCCT's fuse minutes inside the parent's
         domed end) becomes the start of the child that continues it, or,
-        without one, is left out: ``stubs`` maps such ids of this branch's
-        children to the reason (their children start on this branch).
+        without children, is left out: ``stubs`` maps such ids of this
+        branch's children to the reason.
         """
         tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
         if merge:
@@ -908,9 +908,10 @@ def _without_stubs(tree: VesselTree) -> tuple[VesselTree, dict[int, dict[int, st
     A stub with children becomes the start of the child that continues it most
     straightly (end and start tangents less than 90 degrees apart; merged as
     in :meth:`VesselTree.merged`, whatever the angle); its other children then
-    start on that vessel. A stub without such a child is left out and its
-    children start on its parent. Returns the tree and, per parent id, the
-    left-out stubs with the reason.
+    start on that vessel. A stub whose children all turn back is kept (they
+    start at its end, which may lie outside the parent); a stub without
+    children is left out. Returns the tree and, per parent id, the left-out
+    stubs with the reason.
     """
     branches = {b.id: replace(b, warnings=list(b.warnings)) for b in tree.branches}
     stubs: dict[int, dict[int, str]] = {}
@@ -926,10 +927,12 @@ def _without_stubs(tree: VesselTree) -> tuple[VesselTree, dict[int, dict[int, st
             rp, rc = float(par.radius_at(s)), float(b.radius_at(b.domain[0]))
             if b.length_mm >= STUB_RADII * (rp + rc):
                 continue
-            touched = changed = True
             kids = [c for c in branches.values() if c.parent == b.id]
             cos = [float(b.tangent("end") @ c.tangent("start")) for c in kids]
-            if kids and max(cos) >= 0.0:
+            if kids and max(cos) < 0.0:
+                continue  # its children turn back: kept, they start at its end
+            touched = changed = True
+            if kids:
                 c = kids[int(np.argmax(cos))]
                 joined = _merge_pair(b, c, TOL_MM)
                 joined.warnings.append(f"starts with branch {b.id}, a stub of {b.length_mm:.1f} mm "
@@ -941,14 +944,10 @@ def _without_stubs(tree: VesselTree) -> tuple[VesselTree, dict[int, dict[int, st
                         o.parent, o.parent_s_mm = c.id, None
                 new_parent = c.id
             else:
-                for o in kids:
-                    o.parent, o.parent_s_mm = par.id, None
-                moved = (f"; its children ({', '.join(str(o.id) for o in kids)}) start on branch {par.id}"
-                         if kids else "")
                 stubs.setdefault(par.id, {})[b.id] = (
                     f"a stub of {b.length_mm:.1f} mm, shorter than its radius and its parent's together "
                     f"({rc:.1f} + {rp:.1f} mm) where it starts: left out of the solid (inside branch "
-                    f"{par.id} but for its end cap){moved}")
+                    f"{par.id} but for its end cap)")
                 new_parent = par.id
             for sid, why in stubs.pop(b.id, {}).items():  # stubs left out of the stub itself
                 stubs.setdefault(new_parent, {})[sid] = why
