@@ -56,7 +56,8 @@ CURVATURE_FACTOR = 0.8
 #: child's start circle lies strictly inside the parent (no tangent faces).
 CHILD_RADIUS_SHARE = 0.9
 #: A child shorter than this many times its radius and its parent's together at its start
-#: is a stub, left out of the solid (:meth:`VesselTree.pipe_specs`).
+#: is a stub: in the solid it starts the child that continues it, or, childless, is left
+#: out (:meth:`VesselTree.pipe_specs`).
 STUB_RADII = 1.0
 #: A child starting farther than this many parent radii from the parent's
 #: centreline is not pulled onto it.
