@@ -351,6 +351,14 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tupl
     return boundary + (0.5 - radius) * direction, ""
 
 
+def _labelled_share(frame: np.ndarray, p: np.ndarray, q: np.ndarray) -> float:
+    """Share of the pixels on the straight gap between (x, y) points p and q that carry a label."""
+    m = max(int(np.linalg.norm(q - p)), 2)
+    t = np.linspace(0.0, 1.0, m + 1)[1:-1, None]
+    pts = np.rint(p + t * (q - p)).astype(int)
+    return float((frame[pts[:, 1], pts[:, 0]] != 0).mean())
+
+
 def _joins(xy: np.ndarray, comp: np.ndarray, entering: np.ndarray, frame: np.ndarray,
            join_px: float) -> np.ndarray:
     """Edges (k, 2) joining skeleton pieces that do not enter the image to pieces that do.
@@ -378,10 +386,7 @@ def _joins(xy: np.ndarray, comp: np.ndarray, entering: np.ndarray, frame: np.nda
         joined = False
         for i in first[np.argsort(d[ok][order][first])]:
             a, b = int(a_all[i]), int(b_all[i])
-            m = max(int(np.linalg.norm(xy[a] - xy[b])), 2)
-            t = np.linspace(0.0, 1.0, m + 1)[1:-1, None]
-            pts = np.rint(xy[a] + t * (xy[b] - xy[a])).astype(int)
-            if (frame[pts[:, 1], pts[:, 0]] != 0).mean() < _BREAK_LABELLED:
+            if _labelled_share(frame, xy[a], xy[b]) < _BREAK_LABELLED:
                 continue
             out.append((a, b))
             reach |= comp == comp[a]
@@ -444,10 +449,7 @@ def _breaks(ends: np.ndarray, frame: np.ndarray, xy: np.ndarray, graph: Any
     pairs = []
     taken = np.zeros(ends.size, bool)
     for i, j in sorted(zip(*np.nonzero(np.triu(facing)), strict=True), key=lambda ij: gap[ij]):
-        m = max(int(gap[i, j]), 2)
-        t = np.linspace(0.0, 1.0, m + 1)[1:-1, None]
-        pts = np.rint(p[i] + t * (p[j] - p[i])).astype(int)
-        if (frame[pts[:, 1], pts[:, 0]] != 0).mean() < _BREAK_LABELLED:
+        if _labelled_share(frame, p[i], p[j]) < _BREAK_LABELLED:
             continue
         cut[[i, j]] = True
         if not (taken[i] or taken[j]):
