@@ -13,6 +13,10 @@ catheter from vessel by shape and context, not by grey level), low-frequency
 shading, gamma 0.6-1.6, blur, signal-dependent noise, black intensifier circle
 or shutter blades. Geometric: one affine warp (log-uniform scale 0.55-1.9, any
 rotation, mirror) to the crop, centred on a foreground pixel 75% of the time.
+With ``focus_fraction`` > 0 that share of the phantom crops is centred on a
+*focus* pixel instead: a catheter pixel within ``FOCUS_RADIUS`` px of a vessel
+pixel (the ostium, where a contrast-filled catheter runs into the tree, and
+catheter-vessel crossings) or a balloon pixel, where the model errs most.
 """
 
 from __future__ import annotations
@@ -25,7 +29,37 @@ import torch.nn.functional as F
 
 from .data import NOT_VESSEL, Pool
 
-__all__ = ["BatchAugmenter", "normalize", "warp"]
+__all__ = ["BatchAugmenter", "normalize", "warp", "focus_grid"]
+
+#: A catheter pixel this close to a vessel pixel (px of the pool frame) is a focus pixel.
+FOCUS_RADIUS = 12
+
+
+def focus_grid(labels: torch.Tensor, radius: int = FOCUS_RADIUS, chunk: int = 32) -> torch.Tensor:
+    """Focus pixels of label maps on a 4-pixel grid.
+
+    Parameters
+    ----------
+    labels : torch.Tensor
+        (N, H, W) phantom labels (0 background, 1 vessel, 2 catheter, 3 balloon, 4 lead).
+    radius : int
+        A catheter pixel within this many pixels (Chebyshev) of a vessel pixel is a focus pixel.
+    chunk : int
+        Frames processed at once.
+
+    Returns
+    -------
+    torch.Tensor
+        (N, ceil(H/4), ceil(W/4)) bool: balloon pixels and catheter pixels near a vessel.
+    """
+    out = []
+    for s in range(0, len(labels), chunk):
+        lab = labels[s:s + chunk]
+        k = 2 * radius + 1  # a square's max filter, separable
+        near = F.max_pool2d((lab == 1).float()[:, None], (1, k), stride=1, padding=(0, radius))
+        near = F.max_pool2d(near, (k, 1), stride=1, padding=(radius, 0))[:, 0] > 0
+        out.append((((lab == 2) & near) | (lab == 3))[:, ::4, ::4])
+    return torch.cat(out)
 
 
 def normalize(x: torch.Tensor) -> torch.Tensor:
@@ -110,12 +144,18 @@ class BatchAugmenter:
     augment : bool
         False: no photometric augmentation; crops are plain windows of the
         normalized frame at integer offsets (for checks).
+    focus_fraction : float
+        Share of the phantom crops centred on a focus pixel (:func:`focus_grid`)
+        where the frame has one; 0 (default) draws as before.
     """
 
     def __init__(self, pool: Pool, real_images: list[np.ndarray], real_masks: list[np.ndarray], *,
                  crop: int = 256, real_fraction: float = 0.35, device: torch.device | str = "cpu",
-                 seed: int = 0, augment: bool = True):
+                 seed: int = 0, augment: bool = True, focus_fraction: float = 0.0):
         dev = torch.device(device)
+        if not 0.0 <= focus_fraction <= 1.0:
+            raise ValueError(f"focus_fraction must lie in [0, 1], got {focus_fraction}")
+        self.focus_fraction = float(focus_fraction)
         self.device, self.crop, self.augment = dev, int(crop), augment
         self.real_fraction = float(real_fraction)
         shapes = {f.shape for f in pool.frames}
@@ -123,6 +163,7 @@ class BatchAugmenter:
             raise ValueError(f"pool frames must share one shape, got {sorted(shapes)}")
         self.frames = torch.from_numpy(np.stack(pool.frames).astype(np.int16)).to(dev)
         self.labels = torch.from_numpy(np.stack(pool.labels).astype(np.uint8)).to(dev)
+        self.focus = focus_grid(self.labels) if self.focus_fraction > 0 else None
         self.inv_max = torch.tensor([1.0 / (2**b - 1) for b in pool.bits], device=dev)
         if real_images:
             self.real = torch.from_numpy(np.stack(real_images).astype(np.uint8)).to(dev)
@@ -179,7 +220,8 @@ class BatchAugmenter:
             x = torch.where(m, col(val), x)
         return x
 
-    def _crops(self, x: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _crops(self, x: torch.Tensor, target: torch.Tensor,
+               focus: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         b, _, h, w = x.shape
         if self.augment:
             scale = torch.exp(self._u(b, math.log(0.55), math.log(1.9)))
@@ -193,13 +235,18 @@ class BatchAugmenter:
         t4 = target[:, ::4, ::4]
         cols = t4.shape[2]
         fg_w = ((t4 >= 1) & (t4 <= 4)).reshape(b, -1).float()
+        use_f = torch.zeros(b, dtype=torch.bool, device=x.device)
+        if focus is not None and self.augment:
+            f_w = focus.reshape(b, -1).float()
+            use_f = (f_w.sum(1) > 0) & (self._u(b) < self.focus_fraction)
+            fg_w = torch.where(use_f[:, None], f_w, fg_w)
         has = fg_w.sum(1) > 0
         if has.any():
             k = torch.multinomial(fg_w + (~has[:, None]).float(), 1, generator=self.gen)[:, 0]
             fg_xy = torch.stack([(k % cols) * 4, torch.div(k, cols, rounding_mode="floor") * 4], -1).float()
             jitter = torch.randn(b, 2, device=x.device, generator=self.gen)
             jitter = jitter * (0.1 * self.crop / scale)[:, None]
-            use = (has & (self._u(b) < 0.75))[:, None]
+            use = (has & ((self._u(b) < 0.75) | use_f))[:, None]
             centre = torch.where(use, fg_xy + jitter, centre)
         if not self.augment:  # plain windows of the frame: integer offsets, inside it where it fits
             half = self.crop / 2
@@ -218,7 +265,7 @@ class BatchAugmenter:
             x = self.frames[k].float()[:, None] * self.inv_max[k][:, None, None, None]
             if self.augment:
                 x = self._photometric(x, lab)
-            xi, ti = self._crops(normalize(x), lab)
+            xi, ti = self._crops(normalize(x), lab, None if self.focus is None else self.focus[k])
             xs.append(xi)
             ts.append(ti)
         if n_real:

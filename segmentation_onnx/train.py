@@ -118,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
                     "(rounds 1-6; drives low-gradient layers to zero)")
     ap.add_argument("--crop", type=int, default=256)
     ap.add_argument("--real-fraction", type=float, default=0.35)
+    ap.add_argument("--focus-fraction", type=float, default=0.0,
+                    help="share of phantom crops centred on catheter pixels next to vessels or on balloons")
     ap.add_argument("--pool", help="rendered phantom pool (.npz from `python -m segmentation_onnx.data`); "
                     "rendered here when missing")
     ap.add_argument("--pool-phantoms", type=int, default=200, help="phantoms to render when --pool is absent")
@@ -199,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # batches are drawn and augmented on the training device; a resumed run reseeds from its step
     aug = BatchAugmenter(pool, real_imgs, real_masks, crop=a.crop, real_fraction=a.real_fraction,
-                         device=device, seed=a.seed * 1_000_003 + step)
+                         focus_fraction=a.focus_fraction, device=device, seed=a.seed * 1_000_003 + step)
     (out / "config.json").write_text(json.dumps({**vars(a), "widths": widths, "device": str(device),
                                                  "pool_frames": len(pool.frames), "revived": revived,
                                                  "real_train_ids": real_train_ids,

@@ -369,6 +369,42 @@ def test_training_batches(phantom_frames):
         assert (ti[k].numpy() == labels[0][cy:cy + 64, cx:cx + 64]).all()
 
 
+def test_focus_crops():
+    """Catheter pixels within 12 px of a vessel and balloons are focus pixels; focused crops show them."""
+    torch = pytest.importorskip("torch")
+    from segmentation_onnx.data import Pool
+    from segmentation_onnx.torch_aug import FOCUS_RADIUS, BatchAugmenter, focus_grid
+
+    assert FOCUS_RADIUS == 12
+    lab = torch.zeros(2, 64, 64, dtype=torch.uint8)
+    lab[:, 28, 28] = 1
+    lab[:, 28, 40] = 2  # 12 px (Chebyshev) from the vessel pixel: focus
+    lab[:, 40, 40] = 2  # 12 px diagonally: focus
+    lab[:, 28, 44] = 2  # 16 px: not
+    lab[:, 60, 4] = 2  # far: not
+    lab[1, 0, 60] = 3  # a balloon anywhere: focus
+    g = focus_grid(lab)
+    assert g.shape == (2, 16, 16)
+    assert sorted(map(tuple, g[0].nonzero().tolist())) == [(7, 10), (10, 10)]
+    assert sorted(map(tuple, g[1].nonzero().tolist())) == [(0, 15), (7, 10), (10, 10)]
+    # a 256 px frame with a short catheter piece next to a vessel far from the rest of the foreground
+    frame = np.full((256, 256), 200, np.uint8)
+    labels = np.zeros((256, 256), np.uint8)
+    labels[20:200, 200:206] = 1
+    labels[240:252, 8:12] = 1
+    labels[236:240, 14:18] = 2
+    frame[labels > 0] = 60
+    pool = Pool([frame], [labels], [8])
+    share = []
+    for f in (0.0, 1.0):
+        aug = BatchAugmenter(pool, [], [], crop=32, focus_fraction=f, seed=3)
+        _, t = aug.batch(64)
+        share.append(float((t == 2).flatten(1).any(1).float().mean()))
+    assert share[0] < 0.2 and share[1] > 0.8, share
+    with pytest.raises(ValueError, match="focus_fraction"):
+        BatchAugmenter(pool, [], [], focus_fraction=1.5)
+
+
 def _find_offset(z: np.ndarray, crop: np.ndarray) -> tuple[int, int] | None:
     """Top-left (x, y) where ``crop`` sits in ``z`` (exact match up to float noise)."""
     res = cv2.matchTemplate(z, crop, cv2.TM_SQDIFF)
