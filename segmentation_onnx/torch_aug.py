@@ -53,9 +53,9 @@ def focus_grid(labels: torch.Tensor, radius: int = FOCUS_RADIUS, chunk: int = 32
         (N, ceil(H/4), ceil(W/4)) bool: balloon pixels and catheter pixels near a vessel.
     """
     out = []
+    k = 2 * radius + 1  # a square's max filter, separable
     for s in range(0, len(labels), chunk):
         lab = labels[s:s + chunk]
-        k = 2 * radius + 1  # a square's max filter, separable
         near = F.max_pool2d((lab == 1).float()[:, None], (1, k), stride=1, padding=(0, radius))
         near = F.max_pool2d(near, (k, 1), stride=1, padding=(radius, 0))[:, 0] > 0
         out.append((((lab == 2) & near) | (lab == 3))[:, ::4, ::4])
