@@ -234,3 +234,50 @@ def test_root_is_the_end_nearest_a_catheter_that_the_contrast_has_not_reached():
                    [((20, 0), (20, 128), 2.5)])
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
     assert np.allclose(g.landmarks[g.root].point_px, (100, 128), atol=6)
+
+
+def test_root_ignores_catheter_specks_when_the_catheter_stops_short_of_the_vessel():
+    # A model's labels leave 20 px of background between the catheter coming down from the top
+    # edge and the vessel it engages, and put a piece of catheter on the vessel 120 px away (on
+    # the vessel: nearer it than the catheter's real end). The catheter's end is the tip: the
+    # root is the vessel's left end below it.
+    labels = scene([((60, 150), (220, 150), 4.5)],
+                   [((60, 0), (60, 125), 2.5), ((176, 150), (200, 150), 3.5)])
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
+    assert np.allclose(g.landmarks[g.root].point_px, (62, 150), atol=6.0)
+
+
+def test_root_at_the_balloon_when_the_catheter_before_it_is_labelled_vessel():
+    # A coronary sinus (r 6 px) with an occlusion balloon (ellipse 40 x 24 px = 31 mm² at the
+    # isocentre, centred at (150, 150)) on the catheter that carries it. The model labels the
+    # catheter's last 130 px vessel (a thin vessel from (20, 60) joining the sinus at its start):
+    # the catheter labelled as such ends 140 px from the balloon. The root is where the balloon begins, on the
+    # sinus's centreline, not the end of the catheter-coloured "vessel".
+    labels = scene([((100, 150), (240, 150), 6.0), ((20, 60), (100, 150), 2.5)],
+                   [((0, 0), (20, 60), 2.5)])
+    rr, cc = np.mgrid[:256, :256]
+    labels[((cc - 150) / 20.0) ** 2 + ((rr - 150) / 12.0) ** 2 <= 1.0] = 3
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
+    assert np.allclose(g.landmarks[g.root].point_px, (130, 150), atol=8.0)
+    # A small balloon-coloured speck (a model's false positive, 1.2 mm² here) is no balloon: the
+    # root stays at the catheter's end.
+    labels[labels == 3] = 1
+    labels[((cc - 150) / 4.5) ** 2 + ((rr - 150) / 4.5) ** 2 <= 1.0] = 3
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
+    assert np.linalg.norm(g.landmarks[g.root].point_px - (20, 60)) < 12.0
+
+
+def test_a_given_catheter_tip_roots_the_tree():
+    # Two catheters enter from the top edge; the labels alone make the one ending on the vessel's
+    # right end the tip. A tip passed in (the phase matching's key point, confirmed by the other
+    # view) at the other catheter's end roots the tree at the vessel's left end instead.
+    labels = scene([((60, 150), (220, 150), 4.5)],
+                   [((60, 0), (60, 139), 2.5), ((220, 0), (220, 139), 2.5)])
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels, tip=(60.0, 139.0))
+    assert np.allclose(g.landmarks[g.root].point_px, (62, 150), atol=6.0)
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels, tip=(220.0, 139.0))
+    assert np.allclose(g.landmarks[g.root].point_px, (218, 150), atol=6.0)
+    with pytest.raises(vc.ArgumentError, match="tip"):
+        vc.centreline_graph(labels == 1, VIEW, labels=labels, tip=(np.nan, 3.0))
+    with pytest.raises(vc.ArgumentError, match="tip"):
+        vc.centreline_graph(labels == 1, VIEW, tip=(60.0, 139.0))

@@ -56,12 +56,29 @@ TIP_MARGIN_PX = 4.0
 #: mask for more than this share has cannulated the vessel (a coronary sinus catheter): the
 #: ostium is where it enters, not its tip.
 CANNULATED_SHARE = 0.5
+#: ... counting a catheter pixel as inside where the vessel mask reaches this far (px) beyond the
+#: catheter's edge.
+CANNULATED_WALL_PX = 1.5
 #: The vessel end nearest the catheter tip is the root when it lies within this (px); the
 #: proximal vessel is often not yet (or no longer) filled with contrast next to the tip.
 TIP_REACH_PX = 120.0
 #: The distal end of the catheter that enters from the image border (as the phase matching finds
 #: it) is its tip when it lies within this of the vessel mask (px).
 TIP_ON_VESSEL_PX = 10.0
+#: A catheter end within this (px) of that tip is the catheter going on past a vessel that hides
+#: a stretch of it (a coronary sinus catheter inside the sinus): the tip, when the first is off
+#: the vessel mask.
+TIP_PIECE_PX = 40.0
+#: Otherwise that tip is still the tip when it lies within this of the vessel mask (px: a model's
+#: labels leave a few px of background between the catheter and the vessel it engages); farther,
+#: the end of the catheter's skeleton nearest the vessels is.
+TIP_NEAR_VESSEL_PX = 40.0
+#: A balloon in the vessels (at least BALLOON_MIN_MM2 at the isocentre: an occlusion balloon of
+#: 8-12 x 5-8 mm shows 30-80 mm²) farther than BALLOON_TIP_PX from the catheter
+#: tip found: the catheter's last stretch before the balloon that carries it was labelled vessel,
+#: and the balloon's end nearest the tip is taken for the tip.
+BALLOON_MIN_MM2 = 25.0
+BALLOON_TIP_PX = 80.0
 
 @dataclass
 class Landmark:
@@ -689,6 +706,7 @@ def centreline_graph(
     *,
     labels: Any = None,
     noise_px: float | None = None,
+    tip: Any = None,
 ) -> CentrelineGraph:
     """Centreline graph of a vessel mask.
 
@@ -710,6 +728,11 @@ def centreline_graph(
     noise_px : float, optional
         Pixel noise of the skeleton for the B-spline smoothing; estimated per
         branch when omitted.
+    tip : (2,) array_like, optional
+        The catheter tip ``(col, row)`` to root the tree at, when known better
+        than one frame's labels tell (``reconstruct`` passes the phase
+        matching's key point, which the other view confirmed); with
+        ``labels`` only. Default: found in ``labels``.
 
     Returns
     -------
@@ -730,6 +753,7 @@ def centreline_graph(
     shape = (view.rows, view.cols)
     m = _as_mask(mask, "mask", shape)
     cath = None
+    on_balloon = None  # balloon pixels that sit in the vessels
     if labels is not None:
         lab = np.asarray(labels)
         if lab.shape != shape or not np.issubdtype(lab.dtype, np.integer):
@@ -742,8 +766,17 @@ def centreline_graph(
                 # A balloon sits inside a vessel: its components that touch the vessel are vessel.
                 lab_b, _ = ndimage.label(balloon)
                 touch = np.unique(lab_b[ndimage.binary_dilation(m, iterations=2) & balloon])
-                m = m | np.isin(lab_b, touch[touch > 0])
+                on_balloon = np.isin(lab_b, touch[touch > 0])
+                m = m | on_balloon
             m = _fill_occlusions(m, (lab == 2) | (lab == 4))
+    given_tip = None
+    if tip is not None:
+        given_tip = np.asarray(tip, dtype=float).reshape(-1)
+        if given_tip.shape != (2,) or not np.isfinite(given_tip).all():
+            raise ArgumentError(f"tip: expected a finite (col, row) point, got {tip!r}")
+        if labels is None:
+            raise ArgumentError("tip: needs labels (the catheter it is the tip of)")
+        given_tip = np.clip(given_tip, 0, [shape[1] - 1, shape[0] - 1])
     if noise_px is not None and not (np.isfinite(noise_px) and noise_px >= 0):
         raise ArgumentError(f"noise_px: expected a finite value >= 0, got {noise_px!r}")
     notes: list[str] = []
@@ -763,17 +796,46 @@ def centreline_graph(
         w.splice(n)
     # Root: the end point nearest the catheter, else the widest end of the longest component.
     tip = None
-    if cath is not None and cath.any():
+    if given_tip is not None:
+        tip = given_tip
+    elif cath is not None and cath.any():
         # The distal end of the catheter that enters from the image border (the phase matching's
         # key point: robust to a catheter cut by vessels and to pieces labelled catheter on the
         # vessels) where it touches the vessels, else its skeleton end nearest the vessels (the
         # catheter's last part can be hidden, e.g. inside a coronary sinus).
         from .phase import find_keypoints
 
-        tip = find_keypoints(lab[None], "catheter").points_px[0]
-        if not (np.isfinite(tip).all() and m.any()
-                and _edt(~m)[int(round(tip[1])), int(round(tip[0]))] <= TIP_ON_VESSEL_PX):
-            tip = catheter_tip(cath, m)
+        kp = find_keypoints(lab[None], "catheter").points_px[0]
+        tip = kp if np.isfinite(kp).all() else None
+        gap = _edt(~m)[int(round(tip[1])), int(round(tip[0]))] if tip is not None and m.any() else np.inf
+        if gap > TIP_ON_VESSEL_PX:
+            # Not on the vessels: the catheter goes on beyond a vessel that hides a stretch of it (a
+            # catheter end within TIP_PIECE_PX, nearest the vessels), or the tip is short of the
+            # vessel (model labels: its last px counted as background). Only without a border-
+            # entering catheter near the vessels is any catheter end taken: a model's specks of
+            # catheter on the vessels far from the catheter would be taken for its tip.
+            near_tip = catheter_tip(cath, m, around=tip, within=TIP_PIECE_PX) if tip is not None else None
+            if near_tip is not None:
+                tip = near_tip
+            elif gap > TIP_NEAR_VESSEL_PX:
+                tip = catheter_tip(cath, m)
+    if on_balloon is not None:
+        # Only a balloon-sized one counts (a model's specks do not), with the pieces of at least a
+        # tenth of its size (a balloon the labels split).
+        lab_b, _ = ndimage.label(on_balloon)
+        size = np.bincount(lab_b.ravel())[1:]
+        on_balloon = (np.isin(lab_b, 1 + np.flatnonzero(size >= 0.1 * size.max()))
+                      if size.max() * float(np.prod(view.mm_per_px)) >= BALLOON_MIN_MM2 else None)
+    if tip is not None and on_balloon is not None:
+        # The balloon sits at the end of the catheter that carries it (a coronary sinus occlusion
+        # balloon). A tip found far short of it means the catheter's last stretch was labelled
+        # vessel: the vessels reached past it are the catheter; the balloon's end nearest the tip
+        # is then the most proximal point known to be in the vessel.
+        br, bc = np.nonzero(on_balloon)
+        d_bal = np.hypot(bc - tip[0], br - tip[1])
+        k = int(np.argmin(d_bal))
+        if d_bal[k] > BALLOON_TIP_PX:
+            tip = np.array([bc[k], br[k]], float)
     entry = None
     if tip is not None:
         if _cannulated(cath, m, rmap, tip):
@@ -829,10 +891,20 @@ def _fill_occlusions(m: np.ndarray, occ: np.ndarray) -> np.ndarray:
     return m | (occ & closed)
 
 
-def catheter_tip(catheter: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
+def catheter_tip(catheter: np.ndarray, near: np.ndarray | None = None, *, around: np.ndarray | None = None,
+                 within: float = np.inf) -> np.ndarray | None:
     """``(col, row)`` of the catheter tip: the end of its skeleton inside the image nearest ``near`` pixels.
 
-    Returns None when the mask has no catheter end away from the image border.
+    Parameters
+    ----------
+    catheter : (H, W) bool array
+    near : (H, W) bool array, optional
+        Pixels (the vessels) the tip is nearest to; else the first end found.
+    around : (2,) array, optional
+        Only skeleton ends within ``within`` px of this point ``(col, row)`` count.
+    within : float
+
+    Returns None when the mask has no (such) catheter end away from the image border.
     """
     sk = morphology.skeletonize(catheter)
     if not sk.any():
@@ -842,6 +914,8 @@ def catheter_tip(catheter: np.ndarray, near: np.ndarray | None = None) -> np.nda
     h, w = catheter.shape
     inner = (rr > 2) & (rr < h - 3) & (cc > 2) & (cc < w - 3)
     ends = np.nonzero((deg == 1) & inner)[0]
+    if around is not None and ends.size:
+        ends = ends[np.hypot(cc[ends] - around[0], rr[ends] - around[1]) <= within]
     if ends.size == 0:
         return None
     pts = np.stack([cc[ends], rr[ends]], axis=1).astype(float)
@@ -852,12 +926,23 @@ def catheter_tip(catheter: np.ndarray, near: np.ndarray | None = None) -> np.nda
 
 
 def _cannulated(cath: np.ndarray, m: np.ndarray, rmap: np.ndarray, tip: np.ndarray) -> bool:
-    """Whether the catheter runs inside the vessel behind its tip (``CANNULATED_SHARE``)."""
+    """Whether the catheter runs inside the vessel behind its tip (``CANNULATED_SHARE``).
+
+    A catheter pixel is inside the vessel where the vessel mask reaches at
+    least ``CANNULATED_WALL_PX`` beyond the catheter's own edge: catheter pixels
+    that are vessel only because they close a gap in it (the catheter lying
+    across the vessel, or the model labelling a vessel's stretch catheter)
+    have no vessel round them.
+    """
     rr, cc = np.nonzero(cath)
     d = np.hypot(cc - tip[0], rr - tip[1])
     r = float(_radius_at(rmap, np.asarray(tip, float)[None])[0])
     ring = (d >= r + 6.0) & (d <= r + 24.0)
-    return bool(ring.any() and np.mean(m[rr[ring], cc[ring]]) > CANNULATED_SHARE)
+    if not ring.any():
+        return False
+    rr, cc = rr[ring], cc[ring]
+    inside = m[rr, cc] & (rmap[rr, cc] >= _edt(cath)[rr, cc] + CANNULATED_WALL_PX)
+    return bool(np.mean(inside) > CANNULATED_SHARE)
 
 
 def _root_at_tip(w: _Work, rmap: np.ndarray, tip: np.ndarray) -> int | None:

@@ -543,13 +543,21 @@ def reconstruct(
 
     t = time.perf_counter()
     graphs = []
-    for lab, run, name in ((lab_a, ra, "A"), (lab_b, rb, "B")):
+    # The catheter tips the phase matching tracked through both runs and triangulated: the other
+    # view confirms them, where one frame's labels can put the tip on a piece of vessel labelled
+    # catheter or on another catheter (docs/centreline2d.md, step 7).
+    tips = [None, None]
+    if "catheter" in phase.objects:
+        for k, (kps, f) in enumerate(((phase.keypoints_a, fa), (phase.keypoints_b, fb))):
+            p = np.asarray(kps["catheter"][f], float)
+            tips[k] = p if np.isfinite(p).all() else None
+    for lab, run, name, tip in ((lab_a, ra, "A", tips[0]), (lab_b, rb, "B", tips[1])):
         if not (lab == 1).any():
             raise ReconstructionError(f"centreline graphs: no vessel pixels in frame "
                                       f"{fa if name == 'A' else fb} of run {name} ({run.source or 'run'})")
         with _warnings.catch_warnings(record=True) as caught:
             _warnings.simplefilter("always", VesselcadWarning)
-            graphs.append(centreline_graph(lab == 1, run.view, labels=lab))
+            graphs.append(centreline_graph(lab == 1, run.view, labels=lab, tip=tip))
         warn += [f"graph {name}: {w.message}" for w in caught]
     ga, gb = graphs
     timings["graphs"] = time.perf_counter() - t
