@@ -130,6 +130,15 @@ def test_report_follows_the_contract(recon, tmp_path):
     assert rep["view_a"]["refined"] is False
     assert all({"id", "reprojection_px", "reprojection_mm", "status"} <= set(b) for b in rep["branches"])
     assert set(rep["timings_s"]) >= {"segmentation", "phase", "matching", "centrelines_3d", "solid"}
+    # The ostium: the trunk's start, where the catheter ends, found as the root in both views and
+    # matched; its triangulated point lies on the analytic start within a vessel radius.
+    ost = rep["ostium"]
+    assert ost["matched"] is True
+    assert np.linalg.norm(np.subtract(ost["point_mm"], TREE["trunk"][1][0])) < RADIUS_MM["trunk"]
+    for key, view in (("a_px", VIEW_A), ("b_px", VIEW_B)):
+        start_px = view.project(np.asarray([TREE["trunk"][1][0]], float))[0]
+        r_px = RADIUS_MM["trunk"] * view.magnification / view.pixel_spacing_mm[0]
+        assert np.linalg.norm(np.subtract(ost[key], start_px)) < 3.0 + r_px
     html = paths["report.html"].read_text()
     assert "data:image/png;base64," in html and 'id="view3d"' in html and "http" not in html.split("<body")[1]
     tree = vc.VesselTree.from_json(paths["centrelines.json"])

@@ -197,6 +197,7 @@ class Reconstruction:
             **views,
             "refinement": None if ref is None else ref.to_dict(),
             "graphs": {"a": _graph_summary(self.graphs[0]), "b": _graph_summary(self.graphs[1])},
+            "ostium": self.ostium(),
             "matching": {"landmark_pairs": len(self.match.landmark_pairs),
                          "branch_pairs": len(self.match.pairs),
                          "unmatched": [{"kind": u.kind, "view": u.view, "index": u.index, "reason": u.reason,
@@ -210,6 +211,24 @@ class Reconstruction:
             "warnings": list(self.warnings),
             "timings_s": {k: round(v, 3) for k, v in self.timings.items()},
         }
+
+    def ostium(self) -> dict[str, Any]:
+        """The tree's start: each view's graph root (px) and, where the two were matched, the 3D point.
+
+        Returns
+        -------
+        dict
+            ``{'a_px', 'b_px', 'matched', 'point_mm', 'error_mm'}``; the 3D point and its
+            reconstruction error are None when the two roots were not matched to each other.
+        """
+        roots = [g.landmarks[g.root].point_px if g.root is not None else None for g in self.graphs]
+        pair = next((m for m in self.match.landmark_pairs
+                     if (m.a, m.b) == (self.graphs[0].root, self.graphs[1].root)), None)
+        return {"a_px": None if roots[0] is None else np.round(roots[0], 2).tolist(),
+                "b_px": None if roots[1] is None else np.round(roots[1], 2).tolist(),
+                "matched": pair is not None,
+                "point_mm": None if pair is None else np.round(pair.point_mm, 3).tolist(),
+                "error_mm": None if pair is None else round(float(pair.error_mm), 4)}
 
     def write(self, out: str | os.PathLike, *, html: bool = True, progress: bool = False) -> dict[str, Path]:
         """Write ``tree.step/.stl/.glb``, ``centrelines.json/.vtp``, ``report.json/.html`` into ``out``.

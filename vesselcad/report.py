@@ -58,13 +58,23 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
             else:
                 ax.plot(piece[:, 0], piece[:, 1], ":", color="red", lw=1.5)
         frame_no = rec.phase.frame_a if k == 0 else rec.phase.frame_b
+        g = rec.graphs[k]
+        if g.root is not None:  # where the tree starts (the ostium found in this view)
+            ax.plot(*g.landmarks[g.root].point_px, "*", color="yellow", mec="black", ms=15)
+        kps = rec.phase.keypoints_a if k == 0 else rec.phase.keypoints_b
+        for obj, pts in kps.items():  # the stationary object's key point the phase matching used
+            q = np.asarray(pts[frame_no], float)
+            if np.isfinite(q).all():
+                ax.plot(*q, "+", color="cyan", ms=14, mew=2)
+                ax.text(q[0] + 6, q[1] - 6, obj, color="cyan", fontsize=8)
         v = rec.header_views[k]
         ax.set_title(f"run {'AB'[k]}, frame {frame_no} ({v.primary_deg:+.1f}°, {v.secondary_deg:+.1f}°)",
                      fontsize=10)
         ax.set_axis_off()
     e = rec.errors
     fig.suptitle("segmentation (colours), matched 2D pieces (white), reprojected 3D centrelines (bold, "
-                 "numbered), failed branches (red dotted)"
+                 "numbered), failed branches (red dotted), root of each view (yellow star), phase key "
+                 "point (cyan +)"
                  + (f"\nreprojection {e['mean_px']:.2f} ± {e['sd_px']:.2f} px "
                     f"({e['mean_mm']:.3f} ± {e['sd_mm']:.3f} mm), max {e['max_px']:.2f} px" if e else ""),
                  fontsize=10)
