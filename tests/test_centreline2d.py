@@ -281,15 +281,3 @@ def test_a_given_catheter_tip_roots_the_tree():
         vc.centreline_graph(labels == 1, VIEW, labels=labels, tip=(np.nan, 3.0))
     with pytest.raises(vc.ArgumentError, match="tip"):
         vc.centreline_graph(labels == 1, VIEW, tip=(60.0, 139.0))
-
-
-def test_root_splits_the_vessel_below_a_catheter_that_stops_short_of_it():
-    # As above, but the catheter (a model's labels) ends 15 px above the vessel's wall: the
-    # skeleton still runs through the ostium below the tip, and no vessel end lies near it (the
-    # nearer end is 60 px away): the root is split into the vessel there.
-    labels = scene([((40, 150), (220, 150), 4.5)],
-                   [((100, 0), (100, 130), 2.5)])
-    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
-    root = g.landmarks[g.root]
-    assert np.allclose(root.point_px, (100, 150), atol=3.0)
-    assert root.degree == 2 and all(g.root == b.start for b in g.branches)

@@ -52,9 +52,6 @@ CROSSING_MIN_ANGLE_DEG = 15.0
 #: The catheter tip is on the skeleton within a vessel radius plus this (px); a node this close
 #: along the skeleton to the tip's nearest point is used as the root rather than a new one.
 TIP_MARGIN_PX = 4.0
-#: The skeleton runs through the ostium when it passes within a vessel radius plus TIP_MARGIN_PX
-#: plus this of the tip (px): a model's catheter often stops short of the vessel it engages.
-TIP_SHORT_PX = 16.0
 #: A catheter whose pixels 6-24 px beyond a vessel radius from its tip lie inside the vessel
 #: mask for more than this share has cannulated the vessel (a coronary sinus catheter): the
 #: ostium is where it enters, not its tip.
@@ -954,8 +951,8 @@ def _root_at_tip(w: _Work, rmap: np.ndarray, tip: np.ndarray) -> int | None:
     In a projection the ostium is often not a vessel end: a side branch (or
     the left main's two daughters) leaves it in the other direction, and the
     skeleton runs on through it. When the skeleton passes within a vessel
-    radius (plus ``TIP_MARGIN_PX`` and ``TIP_SHORT_PX``) of the tip and no end
-    point lies within about the same distance plus a radius (a skeleton stops about a radius
+    radius (plus ``TIP_MARGIN_PX``) of the tip and no end point lies within
+    about the same distance plus a radius (a skeleton stops about a radius
     short of a vessel's end), the branch is split at its point nearest the
     tip, or an existing node there is used. None otherwise.
     """
@@ -969,7 +966,7 @@ def _root_at_tip(w: _Work, rmap: np.ndarray, tip: np.ndarray) -> int | None:
     d = np.linalg.norm(flat - tip, axis=1)
     q = int(np.argmin(d))
     r = float(_radius_at(rmap, flat[q][None])[0])
-    if d[q] > r + TIP_MARGIN_PX + TIP_SHORT_PX:
+    if d[q] > r + TIP_MARGIN_PX:
         return None  # the tip is not on the vessel
     ends = [n for n in w.nodes if w.degree(n) == 1]
     if ends and min(float(np.linalg.norm(w.nodes[n] - tip)) for n in ends) <= d[q] + r + TIP_MARGIN_PX:
