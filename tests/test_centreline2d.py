@@ -280,4 +280,6 @@ def test_a_given_catheter_tip_roots_the_tree():
     with pytest.raises(vc.ArgumentError, match="tip"):
         vc.centreline_graph(labels == 1, VIEW, labels=labels, tip=(np.nan, 3.0))
     with pytest.raises(vc.ArgumentError, match="tip"):
+        vc.centreline_graph(labels == 1, VIEW, labels=labels, tip="ostium")
+    with pytest.raises(vc.ArgumentError, match="tip"):
         vc.centreline_graph(labels == 1, VIEW, tip=(60.0, 139.0))

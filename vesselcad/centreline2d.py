@@ -771,7 +771,10 @@ def centreline_graph(
             m = _fill_occlusions(m, (lab == 2) | (lab == 4))
     given_tip = None
     if tip is not None:
-        given_tip = np.asarray(tip, dtype=float).reshape(-1)
+        try:
+            given_tip = np.asarray(tip, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise ArgumentError(f"tip: expected a finite (col, row) point, got {tip!r}") from None
         if given_tip.shape != (2,) or not np.isfinite(given_tip).all():
             raise ArgumentError(f"tip: expected a finite (col, row) point, got {tip!r}")
         if labels is None:
@@ -801,8 +804,8 @@ def centreline_graph(
     elif cath is not None and cath.any():
         # The distal end of the catheter that enters from the image border (the phase matching's
         # key point: robust to a catheter cut by vessels and to pieces labelled catheter on the
-        # vessels) where it touches the vessels, else its skeleton end nearest the vessels (the
-        # catheter's last part can be hidden, e.g. inside a coronary sinus).
+        # vessels) where it touches the vessels; off them, a catheter end near it (docs/
+        # centreline2d.md step 7).
         from .phase import find_keypoints
 
         kp = find_keypoints(lab[None], "catheter").points_px[0]
