@@ -15,7 +15,10 @@ integer program: each landmark paired at most once and each branch used once,
 so the topology of both trees is respected without asking them to be
 identical: a chain paired with one branch marks a branch point seen in one
 view only (its side branch hidden or too short in the
-other). Whatever is not paired is returned with its reason.
+other). The choice is then made again with every candidate weighted by how
+far its 3D points lie from an ellipsoid fitted robustly to the first
+choice's points: the heart's surface, on which coronary vessels run
+(:mod:`vesselcad.surface`). Whatever is not paired is returned with its reason.
 
 See docs/centreline2d.md.
 """
@@ -34,6 +37,7 @@ from .epipolar import backtrack
 from .errors import ArgumentError
 from .geometry import CArmView, check_view, reconstruction_error
 from .splines import arc_length, fit_curve_2d
+from .surface import QuadricSurface, fit_quadric_surface
 
 __all__ = ["LandmarkMatch", "BranchPair", "Unmatched", "GraphMatch", "match_graphs"]
 
@@ -79,6 +83,11 @@ FORESHORTENING_SIGMA = 0.2
 MIN_FORESHORTENING = 0.1
 #: The 3D length of a pair is measured on chords this long (px), not on the noisy sample steps.
 CHORD_PX = 8.0
+#: Smallest spread (mm) of a tree's points about the heart's quadric: real hearts are no quadric
+#: closer than this (grooves, the proximal vessels leaving the aorta).
+SURFACE_SIGMA_MIN_MM = 2.0
+#: Width of the surface prior in units of that spread (docs/centreline2d.md, "The heart's surface").
+SURFACE_WIDTH = 1.5
 
 
 @dataclass
@@ -196,6 +205,8 @@ class GraphMatch:
     roots : tuple of int or None
         The matched root landmarks (view A, view B) of the main tree.
     warnings : list of str
+    surface : QuadricSurface or None
+        The heart's surface fitted to the paired 3D points (``surface_prior``).
     """
 
     landmark_pairs: list[LandmarkMatch]
@@ -203,6 +214,7 @@ class GraphMatch:
     unmatched: list[Unmatched]
     roots: tuple[int | None, int | None]
     warnings: list[str] = field(default_factory=list)
+    surface: QuadricSurface | None = None
 
     @property
     def branch_pairs(self) -> list[tuple[int, int]]:
@@ -356,7 +368,8 @@ def _depths(graph: CentrelineGraph) -> dict[int, int]:
 
 def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
                  graph_b: CentrelineGraph, *, landmark_tol_px: float = LANDMARK_TOL_PX,
-                 branch_tol_px: float = BRANCH_TOL_PX, continuation: bool = True) -> GraphMatch:
+                 branch_tol_px: float = BRANCH_TOL_PX, continuation: bool = True,
+                 surface_prior: bool = True) -> GraphMatch:
     """Pair the landmarks and branches of two views' centreline graphs.
 
     Every branch of one view is a candidate partner of every branch, or chain
@@ -373,7 +386,11 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     respects the topology of both trees; a chain matched to one branch marks
     a branch point seen in one view only. Finally each accepted pair is
     continued past its ends, along both views' skeleton graphs, for as long
-    as the two views agree (``continuation``).
+    as the two views agree (``continuation``). With ``surface_prior`` a
+    quadric is fitted to the 3D points of that first choice (robustly: the
+    heart's surface, on which coronary arteries and veins run), every
+    candidate's gain is weighted by how far its 3D points leave it, and the
+    choice is made again; the continuation pays for leaving it too.
 
     Parameters
     ----------
@@ -390,12 +407,17 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         graphs, through branch points of either view, as far as the views
         agree (:mod:`vesselcad.continuation`): reaches vessels whose landmarks
         are lost in one view (default True).
+    surface_prior : bool
+        Prefer pairs whose 3D points lie on a smooth surface through the
+        tree (docs/centreline2d.md, "The heart's surface"; default True).
+        Turn it off for vessels that do not run on one surface.
 
     Returns
     -------
     GraphMatch
         ``branch_pairs`` lists (index in ``graph_a.branches``, index in
-        ``graph_b.branches``); ``pairs`` hold the ordered pieces ready for
+        ``graph_b.branches``); ``surface`` is the fitted quadric (None where
+        it was off or too few points were paired); ``pairs`` hold the ordered pieces ready for
         :func:`vesselcad.intersect_centrelines`, proximal first (the order of
         view A's tree); ``unmatched`` lists every landmark and branch left out,
         with the reason.
@@ -410,8 +432,9 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     for tol, name in ((landmark_tol_px, "landmark_tol_px"), (branch_tol_px, "branch_tol_px")):
         if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
             raise ArgumentError(f"{name}: expected a positive number of pixels, got {tol!r}")
-    if not isinstance(continuation, bool):
-        raise ArgumentError(f"continuation: expected True or False, got {continuation!r}")
+    for flag, name in ((continuation, "continuation"), (surface_prior, "surface_prior")):
+        if not isinstance(flag, bool):
+            raise ArgumentError(f"{name}: expected True or False, got {flag!r}")
     ga = _check_graph(graph_a, "graph_a")
     gb = _check_graph(graph_b, "graph_b")
     if not ga.branches or not gb.branches:
@@ -469,6 +492,7 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         extra = len(pa.edges) + len(pb.edges) - 2
         gain = min(pa.length, pb.length) * (1.0 - cost / branch_tol_px) * (CHAIN_FACTOR ** extra) * fs
         cand = _Cand.closed(gain, cost, pa, pb, path)
+        cand.points_mm = X[path]
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         cands.append(cand)
     cands += _open_candidates(view_a, view_b, paths_a, paths_b, ok_lm, branch_tol_px, mm_a, mm_b)
@@ -480,6 +504,19 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     cands.sort(key=lambda c: -c.gain)
 
     accepted, map_ab, map_ba, only_a, only_b, used_a, used_b = _select(cands)
+    surface = None
+    if surface_prior:
+        # The heart's surface: fitted to the first choice's 3D points, it rescores every candidate
+        # by how far its points leave it, and the choice is made again.
+        pts = [_finite_rows([c.points_mm]) for c in accepted]
+        surface = fit_quadric_surface(np.vstack([np.zeros((0, 3))] + pts),
+                                      np.repeat(np.arange(len(pts)), [len(q) for q in pts]))
+        if surface is not None:
+            sigma = max(surface.sigma_mm, SURFACE_SIGMA_MIN_MM)
+            for c in cands:
+                c.gain *= _surface_factor(surface, sigma, c.points_mm)
+            cands.sort(key=lambda c: -c.gain)
+            accepted, map_ab, map_ba, only_a, only_b, used_a, used_b = _select(cands)
 
     # Orientation: proximal first, by view A's tree (depth from the root).
     depth_a = _depths(ga)
@@ -491,7 +528,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
             pieces = [_flip(q) for q in pieces[::-1]]
         pairs.extend(pieces)
     if continuation:
-        more = _continuations(view_a, view_b, ga, gb, pairs, branch_tol_px, mm_a, mm_b, rate)
+        more = _continuations(view_a, view_b, ga, gb, pairs, branch_tol_px, mm_a, mm_b, rate,
+                              surface)
         pairs.extend(more)
         used_a = used_a | {p.a for p in more}
         used_b = used_b | {p.b for p in more}
@@ -532,7 +570,7 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     warnings_ = []
     if ga.root is not None and gb.root is not None and map_ab.get(ga.root) not in (None, gb.root):
         warnings_.append("the roots of the two graphs were not matched to each other")
-    return GraphMatch(lmm, pairs, unmatched, roots, warnings_)
+    return GraphMatch(lmm, pairs, unmatched, roots, warnings_, surface)
 
 
 @dataclass
@@ -550,6 +588,7 @@ class _Cand:
     inner_b: list[int]
     edges_a: list[int]  # branches it uses
     edges_b: list[int]
+    points_mm: np.ndarray | None = None  # triangulated points along the alignment
 
     @classmethod
     def closed(cls, gain: float, cost: float, pa: _Path, pb: _Path,
@@ -610,7 +649,7 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
             continue
         gain = min(pa.s[ie], pb.s[je]) * (1.0 - cost / tol) * OPEN_FACTOR * fs
         cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])], [], [],
-                     list(pa.edges), list(pb.edges))
+                     list(pa.edges), list(pb.edges), X[pi, pj])
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         out.append(cand)
     return out
@@ -660,6 +699,29 @@ def _radius_factor(ra_mm: float, rb_mm: float) -> float:
     if RADIUS_SIGMA <= 0:
         return 1.0
     return float(np.exp(-(np.log(max(ra_mm, 1e-6) / max(rb_mm, 1e-6)) / RADIUS_SIGMA) ** 2))
+
+
+def _finite_rows(parts: list[np.ndarray | None]) -> np.ndarray:
+    """The triangulated points of candidates, stacked, without the failed ones (stored as 1e6)."""
+    pts = [p for p in parts if p is not None and len(p)]
+    if not pts:
+        return np.zeros((0, 3))
+    P = np.vstack(pts)
+    return P[np.all(np.abs(P) < 1e5, axis=1)]
+
+
+def _surface_factor(surface: QuadricSurface, sigma: float, points_mm: np.ndarray | None) -> float:
+    """Gain factor (0..1] from how far a candidate's 3D points lie from the heart's surface.
+
+    A Gaussian of the median distance (robust to the proximal vessel, which
+    leaves the aorta off the surface, in a candidate that starts at the
+    ostium) with width ``SURFACE_WIDTH`` times ``sigma``.
+    """
+    p = _finite_rows([points_mm])
+    if not len(p):
+        return 1.0
+    d = float(np.median(surface.distance(p)))
+    return float(np.exp(-0.5 * (d / (SURFACE_WIDTH * sigma)) ** 2))
 
 
 def _cost_factor(cost: float, tol: float, rate: float) -> float:
@@ -769,7 +831,7 @@ def _select(cands: list[_Cand]) -> tuple:
 
 def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph,
                    pairs: list[BranchPair], tol: float, mm_a: float, mm_b: float,
-                   cost_rate: float = 0.0) -> list[BranchPair]:
+                   cost_rate: float = 0.0, surface: QuadricSurface | None = None) -> list[BranchPair]:
     """Pairs grown from the ends of ``pairs`` along both skeleton graphs (:mod:`vesselcad.continuation`)."""
     from . import continuation as cont
 
@@ -794,6 +856,11 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
     for ca, ta, cb, tb in anchors:
         free_a[cha.idx[ca, ta]] = free_b[chb.idx[cb, tb]] = True
     se = cont.sample_errors(va, vb, cha, chb, free_a, free_b)
+    if surface is not None:
+        # Leaving the heart's surface by more than SURFACE_WIDTH sigma costs like reconstruction error.
+        width = SURFACE_WIDTH * max(surface.sigma_mm, SURFACE_SIGMA_MIN_MM)
+        d = np.nan_to_num(surface.distance(se.X), nan=np.inf)
+        se.E = np.minimum(se.E + OPEN_TAU * tol * np.maximum(d / width - 1.0, 0.0) ** 2, CAP_PX)
     # Grow from view A's side, then from view B's (a vessel that view A shows as one branch but
     # view B through a branch point, or the other way round), until neither finds more.
     found: list[cont.Continuation] = []
