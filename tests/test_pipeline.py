@@ -130,6 +130,8 @@ def test_report_follows_the_contract(recon, tmp_path):
     assert rep["view_a"]["refined"] is False
     assert all({"id", "reprojection_px", "reprojection_mm", "status"} <= set(b) for b in rep["branches"])
     assert set(rep["timings_s"]) >= {"segmentation", "phase", "matching", "centrelines_3d", "solid"}
+    surf = rep["matching"]["surface"]
+    assert surf is None or set(surf) == {"semi_axes_mm", "spread_mm", "inliers"}
     # The ostium: the trunk's start, where the catheter ends, found as the root in both views and
     # matched; its triangulated point lies on the analytic start within a vessel radius.
     ost = rep["ostium"]
@@ -239,3 +241,19 @@ def test_chosen_frames_are_segmented_again_with_mirror_tta():
         assert (rec.labels[0] == la[0]).all()
     with pytest.raises(vc.ArgumentError, match="tta"):
         reconstruct(ra, rb, model=Recording(), tta="yes")
+
+
+def test_report_gives_the_hearts_surface_as_fitted():
+    # An ellipsoid of semi-axes 40, 45 and 58 mm seen over a cap: the report's summary of the
+    # matching's surface gives those axes, no spread and every point an inlier.
+    from vesselcad.pipeline import _surface_summary
+    from vesselcad.surface import fit_quadric_surface
+
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(600, 3))
+    u = u[u[:, 2] > 0.2]
+    s = fit_quadric_surface(u / np.linalg.norm(u, axis=1, keepdims=True) * [45.0, 58.0, 40.0])
+    summary = _surface_summary(s)
+    assert summary["semi_axes_mm"] == [40.0, 45.0, 58.0]
+    assert summary["spread_mm"] == 0.0 and summary["inliers"] == 1.0
+    assert _surface_summary(None) is None

@@ -31,6 +31,7 @@ from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
 from .phase import PhaseMatch, match_phase
 from .refine import Refinement, refine_geometry
 from .segment import Segmenter
+from .surface import semi_axes
 from .tree import TreeBranch, VesselTree
 
 __all__ = ["BranchResult", "Reconstruction", "ReconstructionError", "reconstruct"]
@@ -202,7 +203,8 @@ class Reconstruction:
                          "branch_pairs": len(self.match.pairs),
                          "unmatched": [{"kind": u.kind, "view": u.view, "index": u.index, "reason": u.reason,
                                         "range_px": u.range and [round(x, 2) for x in u.range]}
-                                       for u in self.match.unmatched]},
+                                       for u in self.match.unmatched],
+                         "surface": _surface_summary(self.match.surface)},
             "branches": [b.to_dict() for b in self.branches],
             "reprojection": {k: round(v, 4) for k, v in self.errors.items()},
             "tree": None if self.tree is None else {"branches": len(self.tree),
@@ -273,6 +275,15 @@ def _version() -> str:
     from . import __version__
 
     return __version__
+
+
+def _surface_summary(surface: Any) -> dict[str, Any] | None:
+    """The heart's surface the matching fitted (docs/centreline2d.md), for report.json."""
+    if surface is None:
+        return None
+    axes = semi_axes(surface.coefficients, surface.scale)
+    return {"semi_axes_mm": None if axes is None else [round(float(a), 2) for a in axes],
+            "spread_mm": round(float(surface.sigma_mm), 3), "inliers": round(float(surface.inliers), 3)}
 
 
 def _graph_summary(g: CentrelineGraph) -> dict[str, Any]:
