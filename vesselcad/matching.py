@@ -83,7 +83,7 @@ FORESHORTENING_SIGMA = 0.2
 MIN_FORESHORTENING = 0.1
 #: The 3D length of a pair is measured on chords this long (px), not on the noisy sample steps.
 CHORD_PX = 8.0
-#: Smallest spread (mm) of a tree's points about the heart's quadric: real hearts are no quadric
+#: Smallest spread (mm) of a tree's points about the heart's ellipsoid: real hearts are no ellipsoid
 #: closer than this (grooves, the proximal vessels leaving the aorta).
 SURFACE_SIGMA_MIN_MM = 2.0
 #: Width of the surface prior in units of that spread (docs/centreline2d.md, "The heart's surface").
@@ -386,8 +386,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     respects the topology of both trees; a chain matched to one branch marks
     a branch point seen in one view only. Finally each accepted pair is
     continued past its ends, along both views' skeleton graphs, for as long
-    as the two views agree (``continuation``). With ``surface_prior`` a
-    quadric is fitted to the 3D points of that first choice (robustly: the
+    as the two views agree (``continuation``). With ``surface_prior`` an
+    ellipsoid is fitted to the 3D points of that first choice (robustly: the
     heart's surface, on which coronary arteries and veins run), every
     candidate's gain is weighted by how far its 3D points leave it, and the
     choice is made again; the continuation pays for leaving it too.
@@ -416,8 +416,9 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     -------
     GraphMatch
         ``branch_pairs`` lists (index in ``graph_a.branches``, index in
-        ``graph_b.branches``); ``surface`` is the fitted quadric (None where
-        it was off or too few points were paired); ``pairs`` hold the ordered pieces ready for
+        ``graph_b.branches``); ``surface`` is the fitted ellipsoid (None where
+        the prior was off, too few points were paired or no ellipsoid of a
+        heart's size fits them); ``pairs`` hold the ordered pieces ready for
         :func:`vesselcad.intersect_centrelines`, proximal first (the order of
         view A's tree); ``unmatched`` lists every landmark and branch left out,
         with the reason.

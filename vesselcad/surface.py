@@ -7,13 +7,14 @@ region one tree covers; the proximal vessel leaving the aorta and the
 grooves in which the main vessels run are the largest departures. A wrong
 pairing of two views' curves that share an epipolar band reprojects well
 but lies at the wrong depth, so its 3D points leave that surface, typically
-by 5-10 mm. :func:`fit_quadric_surface` fits the general quadric
-``x^T A x + 2 b^T x = 1`` to the points of a first matching with an
-iteratively reweighted least-squares fit (Tukey's biweight on the distances,
-scale from their median absolute value), so the wrong pairs among them do not
-bend it; :meth:`QuadricSurface.distance` gives the first-order (Sampson)
-distance of points to it, exact on the surface and accurate to ``d^2 / R``
-for a point ``d`` off a surface of curvature radius ``R``.
+by 5-10 mm. :func:`fit_quadric_surface` fits the quadric
+``x^T A x + 2 b^T x = 1``, restricted to ellipsoids of a heart's size, to the
+points of a first matching: a random-sample (MSAC) start, then iteratively
+reweighted least squares (Tukey's biweight on the distances, scale from their
+median absolute value), so the wrong pairs among them do not bend it;
+:meth:`QuadricSurface.distance` gives the first-order (Sampson) distance of
+points to it, exact on the surface and accurate to ``d^2 / R`` for a point
+``d`` off a surface of curvature radius ``R``.
 
 See docs/centreline2d.md ("The heart's surface").
 """
