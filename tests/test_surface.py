@@ -78,6 +78,10 @@ def test_bad_input_is_rejected():
     s = fit_quadric_surface(_ellipsoid_points(np.random.default_rng(6), 200))
     with pytest.raises(vc.ArgumentError, match="points"):
         s.distance(np.zeros((4, 2)))
+    with pytest.raises(vc.ArgumentError, match="q"):
+        semi_axes(np.zeros(6), 1.0)
+    with pytest.raises(vc.ArgumentError, match="scale"):
+        semi_axes(s.coefficients, 0.0)
 
 
 def test_semi_axes_of_the_fit_are_the_ellipsoids():

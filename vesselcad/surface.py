@@ -99,7 +99,25 @@ def _distance(p: np.ndarray, q: np.ndarray, centre: np.ndarray, scale: float) ->
 
 
 def semi_axes(q: np.ndarray, scale: float) -> np.ndarray | None:
-    """Semi-axes (mm, ascending) of the quadric ``q`` if it is an ellipsoid, else None."""
+    """Semi-axes (mm, ascending) of the quadric ``q`` if it is an ellipsoid, else None.
+
+    Parameters
+    ----------
+    q : numpy.ndarray, shape (9,)
+        :attr:`QuadricSurface.coefficients`.
+    scale : float
+        :attr:`QuadricSurface.scale` (mm per unit of the normalized coordinates).
+
+    Raises
+    ------
+    ArgumentError
+        ``q`` not of 9 finite numbers or ``scale`` not positive.
+    """
+    q = np.asarray(q, dtype=float)
+    if q.shape != (9,) or not np.all(np.isfinite(q)):
+        raise ArgumentError(f"q: expected 9 finite quadric coefficients, got shape {q.shape}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ArgumentError(f"scale: expected a positive number of mm, got {scale!r}")
     a, b, c, d, e, f, g, h, i = q
     A = np.array([[a, d, e], [d, b, f], [e, f, c]])
     lam = np.linalg.eigvalsh(A)
@@ -127,9 +145,10 @@ def _solve(M: np.ndarray, w: np.ndarray) -> np.ndarray | None:
     """Weighted least squares of ``M q = 1`` (weights ``w``) by the normal equations (9 x 9)."""
     A = M.T @ (M * w[:, None])
     try:
-        return np.linalg.solve(A, M.T @ w)
+        q = np.linalg.solve(A, M.T @ w)
     except np.linalg.LinAlgError:
         return None
+    return q if np.all(np.isfinite(q)) else None
 
 
 def fit_quadric_surface(points: np.ndarray, groups: np.ndarray | None = None, *,
