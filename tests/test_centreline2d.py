@@ -207,12 +207,15 @@ def test_root_at_a_catheter_tip_on_the_vessel_is_split_into_the_branch():
     assert ends[0] < 50 and ends[1] > 210
 
 
-def test_root_ignores_a_piece_of_vessel_labelled_catheter():
-    # A segmentation model labels 24 px of the vessel far from the ostium as catheter. The
-    # catheter itself comes down from the image's top edge and ends 4 px above the vessel's
-    # left end: that is the root, not the piece on the vessel (which lies nearer the vessel).
+@pytest.mark.parametrize("catheter_end_row", [139, 125])
+def test_root_ignores_a_piece_of_vessel_labelled_catheter(catheter_end_row):
+    # A segmentation model labels 24 px of the vessel far from the ostium as catheter (120 px
+    # from the ostium: nearer the vessel than the catheter's real end). The catheter itself comes
+    # down from the image's top edge and ends 4 px above the vessel's left end (row 139), or
+    # stops 20 px short of it (row 125, a model's labels leaving background between): its end is
+    # the tip, and the root is the vessel's left end below it, not the piece on the vessel.
     labels = scene([((60, 150), (220, 150), 4.5)],
-                   [((60, 0), (60, 139), 2.5), ((176, 150), (200, 150), 3.5)])
+                   [((60, 0), (60, catheter_end_row), 2.5), ((176, 150), (200, 150), 3.5)])
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
     assert np.allclose(g.landmarks[g.root].point_px, (62, 150), atol=6.0)
 
@@ -234,17 +237,6 @@ def test_root_is_the_end_nearest_a_catheter_that_the_contrast_has_not_reached():
                    [((20, 0), (20, 128), 2.5)])
     g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
     assert np.allclose(g.landmarks[g.root].point_px, (100, 128), atol=6)
-
-
-def test_root_ignores_catheter_specks_when_the_catheter_stops_short_of_the_vessel():
-    # A model's labels leave 20 px of background between the catheter coming down from the top
-    # edge and the vessel it engages, and put a piece of catheter on the vessel 120 px away (on
-    # the vessel: nearer it than the catheter's real end). The catheter's end is the tip: the
-    # root is the vessel's left end below it.
-    labels = scene([((60, 150), (220, 150), 4.5)],
-                   [((60, 0), (60, 125), 2.5), ((176, 150), (200, 150), 3.5)])
-    g = vc.centreline_graph(labels == 1, VIEW, labels=labels)
-    assert np.allclose(g.landmarks[g.root].point_px, (62, 150), atol=6.0)
 
 
 def test_root_at_the_balloon_when_the_catheter_before_it_is_labelled_vessel():
