@@ -961,3 +961,32 @@ def test_a_stub_between_two_close_junctions_joins_the_vessel_after_it():
     # 3 mm is longer than the two radii together: a vessel of its own, kept
     longer = tree(3.0, np.radians(45.0)).solid()
     assert not longer.failed and sorted(p.branch_id for p in longer.pipes) == [0, 1, 2]
+
+
+def test_a_face_unification_that_never_ends_is_given_up_and_the_solid_delivered(monkeypatch):
+    # tests/data/README.md: OCCT's face unification loops forever on this tree's union.
+    import vesselcad.kernel.solid as ks
+
+    monkeypatch.setattr(ks, "TIDY_TIMEOUT_S", 3.0)
+    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "unify_hang_rca_2001.json")
+    solid = tree.solid()
+    assert "OCCT's face unification did not finish within 3 s: merged edges only" in solid.warnings
+    check = solid.check()
+    assert check["valid"] and check["watertight"] and check["solids"] == 1
+    # what the solid holds is whole: every kept branch's probe points lie inside it
+    assert solid.branch_ids
+    for pipe in solid.pipes:
+        if pipe.branch_id in solid.branch_ids:
+            assert ks._inside(solid.shape, pipe.trusted_probes()).all()
+
+
+def test_work_in_a_forked_child_is_bounded_in_time():
+    import time
+
+    import vesselcad.kernel.solid as ks
+
+    if not hasattr(__import__("os"), "fork"):
+        pytest.skip("no fork on this platform")
+    assert ks._finishes(lambda: sum(range(1000)), 10.0) is True
+    assert ks._finishes(lambda: 1 / 0, 10.0) is False
+    assert ks._finishes(lambda: time.sleep(3600), 0.5) is False

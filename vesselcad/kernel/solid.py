@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -71,6 +73,9 @@ FUZZY_MM = 1e-5
 #: Edges shorter than this (mm) are merged by :meth:`VesselSolid.without_short_edges`
 #: (the CFD mesher's default): far below any element, above OCCT's round-off.
 SHORT_EDGE_MM = 0.02
+#: Time limit (s) of OCCT's face unification after the union (normally ~0.2 s per
+#: tree; it can loop forever, see :func:`_tidy`).
+TIDY_TIMEOUT_S = 20.0
 #: Linear (mm) and angular (rad) deflection of the throwaway triangulation that
 #: classifies probe points (:func:`_inside`; where it strays from the surface near
 #: a point, the point is classified exactly).
@@ -961,12 +966,68 @@ def _tag_faces(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
     return out
 
 
-def _tidy(shape: TopoDS_Shape, history: _History) -> TopoDS_Shape:
-    unify = ShapeUpgrade_UnifySameDomain(shape, True, True, False)
+def _finishes(work: Callable[[], Any], timeout_s: float) -> bool | None:
+    """Whether ``work()`` returns within ``timeout_s`` seconds, tried in a forked copy of
+    this process (killed when time is up; a crash counts as not finishing). ``None``
+    where the platform cannot fork (Windows): the caller then runs ``work`` unbounded.
+    """
+    if not hasattr(os, "fork"):
+        return None
+    with warnings.catch_warnings():
+        # the parallel boolean leaves OCCT pool threads idle; the child only runs
+        # single-threaded shape healing and leaves with os._exit
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
+    if pid == 0:  # pragma: no cover - runs in the child
+        code = 1
+        try:
+            work()
+            code = 0
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + timeout_s
+    pause = 0.002
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return os.waitstatus_to_exitcode(status) == 0
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            return False
+        time.sleep(pause)
+        pause = min(2 * pause, 0.05)
+
+
+def _unify(shape: TopoDS_Shape, faces: bool) -> ShapeUpgrade_UnifySameDomain:
+    unify = ShapeUpgrade_UnifySameDomain(shape, True, faces, False)
     unify.SetLinearTolerance(1e-6)
-    unify.Build()
-    history.ops.append(unify.History())
-    return unify.Shape()
+    return unify
+
+
+def _tidy(shape: TopoDS_Shape, history: _History, warnings_out: list[str] | None = None
+          ) -> TopoDS_Shape:
+    """Merge the faces and edges the boolean split that lie on one surface or curve.
+
+    OCCT's face unification can loop forever on some unions (kept in
+    tests/data/hang/): it is first tried in a forked child with a time limit of
+    :data:`TIDY_TIMEOUT_S`; if that does not finish, only edges are merged (bounded
+    the same way), and if even that fails, the union stays as the boolean left it.
+    """
+    for faces in (True, False):
+        ok = _finishes(lambda faces=faces: _unify(shape, faces).Build(), TIDY_TIMEOUT_S)
+        if ok is False:
+            if warnings_out is not None:
+                what = "face" if faces else "edge"
+                warnings_out.append(f"OCCT's {what} unification did not finish within "
+                                    f"{TIDY_TIMEOUT_S:g} s" + (": merged edges only" if faces else
+                                                                ": the union is left as fused"))
+            continue
+        unify = _unify(shape, faces)
+        unify.Build()
+        history.ops.append(unify.History())
+        return unify.Shape()
+    return shape
 
 
 def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bool = True) -> VesselSolid:
@@ -991,8 +1052,6 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     GeometryError
         No pipe at all, or even the root pipe is not a valid solid.
     """
-    import time
-
     if not pipes:
         raise GeometryError("fuse_pipes: no branch pipe to fuse")
     t0 = time.perf_counter()
@@ -1031,7 +1090,7 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
                     kept = [p for p in pipes if p.branch_id not in failed]
     t1 = time.perf_counter()
     if result is not None:
-        result = _tidy(result, history)
+        result = _tidy(result, history, warnings)
     if general and not is_valid(result):
         result, general, kept = None, False, list(pipes)
         failed.clear()
@@ -1040,7 +1099,7 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
         history = _History()
         result, kept = _pairwise(pipes, fuzzy_mm, history, failed)
         t1 = time.perf_counter()
-        result = _tidy(result, history)
+        result = _tidy(result, history, warnings)
     if not general and not is_valid(result):
         fix = ShapeFix_Shape(result)
         fix.Perform()
