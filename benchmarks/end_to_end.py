@@ -73,6 +73,13 @@ def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
     chk = rec.solid.check() if rec.solid is not None else {}
     row["solid_ok"] = bool(chk.get("valid") and chk.get("watertight"))
     row["solid_pipes"] = 0 if rec.solid is None else len(rec.solid.branch_ids)
+    # share of the 3D tree's length that the solid holds (merged pipes are named a/b/...)
+    row["in_solid"] = 0.0
+    if rec.solid is not None and rec.tree is not None:
+        kept = {n for spec in rec.solid.specs if spec["id"] in rec.solid.branch_ids
+                for n in spec["name"].split("/")}
+        total = sum(b.length_mm for b in rec.tree)
+        row["in_solid"] = sum(b.length_mm for b in rec.tree if b.name in kept) / max(total, 1e-9)
     row["refined"] = bool(rec.refinement is not None and rec.refinement.applied)
     row["status"] = "ok"
     return row
@@ -80,9 +87,9 @@ def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
 
 def table(rows: list[dict]) -> str:
     out = ["| variant | cases | 3D mean mm | 3D p95 mm | reproj px | reproj mm | coverage | visible "
-           "| ostium mm | solid valid+watertight | refined | s/case (mean, max) | "
+           "| ostium mm | solid valid+watertight | tree in solid | refined | s/case (mean, max) | "
            + " | ".join(STAGES) + " |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(STAGES)]
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(STAGES)]
     for variant in dict.fromkeys(r["variant"] for r in rows):
         rs = [r for r in rows if r["variant"] == variant]
         ok = [r for r in rs if r["status"] == "ok"]
@@ -99,12 +106,13 @@ def table(rows: list[dict]) -> str:
         ost_s = (f"{np.nanmedian(ost):.2f} ({np.sum(ost <= 3.0)}/{len(ok)} ≤ 3)" if np.isfinite(ost).any()
                  else "-")
         solid = sum(r["solid_ok"] for r in ok)
+        held = np.mean([r.get("in_solid", np.nan) for r in ok])
         ref = sum(r["refined"] for r in ok)
         secs = [r["seconds"] for r in rs]
         st = " | ".join(f"{np.mean([r['timings'].get(s, 0.0) for r in ok]):.2f}" for s in STAGES)
         out.append(f"| {variant} | {len(rs)} ({len(rs) - len(ok)} failed) | {mean3:.3f} | {p953:.3f} | "
                    f"{rpx:.3f} | {rmm:.3f} | {cov:.1%} | {vis:.1%} | {ost_s} | {solid}/{len(rs)} "
-                   f"| {ref}/{len(ok)} | "
+                   f"| {held:.0%} | {ref}/{len(ok)} | "
                    f"{np.mean(secs):.1f}, "
                    f"{np.max(secs):.1f} | {st} |")
     return "\n".join(out)

@@ -257,3 +257,97 @@ def test_report_gives_the_hearts_surface_as_fitted():
     assert summary["semi_axes_mm"] == [40.0, 45.0, 58.0]
     assert summary["spread_mm"] == 0.0 and summary["inliers"] == 1.0
     assert _surface_summary(None) is None
+
+
+def _branch(k, pts3d, pts_mm=None, start=(None, None), end=(None, None)):
+    """A reconstructed branch whose 2D pieces are the projections of ``pts3d`` and whose
+    3D points are ``pts_mm`` (default: the true ones)."""
+    from vesselcad.matching import BranchPair
+    from vesselcad.pipeline import BranchResult
+
+    pa, pb = VIEW_A.project(pts3d), VIEW_B.project(pts3d)
+    n = len(pts3d)
+    pair = BranchPair(a=k, b=k, a_range=(0.0, 1.0), b_range=(0.0, 1.0), reversed_a=False, reversed_b=False,
+                      start=start, end=end, points_a_px=pa, points_b_px=pb,
+                      radius_a_px=np.full(n, 4.0), radius_b_px=np.full(n, 4.0), radius_mm=1.0,
+                      error_px=0.0, error_mm=0.0)
+    pts = np.array(pts3d if pts_mm is None else pts_mm, float)
+    return BranchResult(id=k, pair=pair, points_mm=pts, radius_mm=np.full(n, 1.0))
+
+
+def test_a_branch_starting_on_another_in_both_views_is_joined_to_it_there():
+    from vesselcad.pipeline import _link_parents
+
+    s = np.linspace(0.0, 1.0, 81)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]       # along x, 60 mm
+    fork = np.array([0.0, 0.0, 0.0])                                  # sample 40
+    child = fork + s * [0.0, 25.0, 15.0]                              # 29 mm, leaves at the fork
+    # its reconstructed start is 6 mm off (depth error fading over its first 12 mm)
+    err = np.clip(1.0 - np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(child, axis=0), axis=1))] / 12.0, 0, 1)
+    wrong = child + err[:, None] * [0.0, 0.0, 6.0]
+    stray = np.array([0.0, -40.0, 30.0]) + s * [0.0, -20.0, 0.0]     # somewhere else in both views
+    results = [_branch(0, parent), _branch(1, child, wrong), _branch(2, stray)]
+    _link_parents(results, (VIEW_A, VIEW_B))
+    assert results[1].parent == 0 and results[2].parent is None
+    # moved onto the fork, the shift fading out within 3 x 6 mm but at most half the branch
+    # (14.6 mm of 29.2)
+    assert np.linalg.norm(results[1].points_mm[0] - fork) < 0.8
+    assert np.abs(results[1].points_mm[-35:] - wrong[-35:]).max() == 0.0
+    assert "starts on branch 0 in both views" in results[1].warnings[0]
+    # without the views (or where 3D proximity decides) nothing moves
+    results = [_branch(0, parent), _branch(1, child, wrong)]
+    _link_parents(results)
+    assert results[1].parent is None
+
+
+def test_two_daughters_of_a_missing_parent_are_not_joined_to_each_other():
+    from vesselcad.pipeline import _link_parents
+
+    s = np.linspace(0.0, 1.0, 61)[:, None]
+    one = s * [30.0, 10.0, 0.0]
+    two = s * [-25.0, 15.0, 10.0]
+    results = [_branch(0, one, one + [0.0, 0.0, 5.0]), _branch(1, two, two - [0.0, 0.0, 5.0])]
+    _link_parents(results, (VIEW_A, VIEW_B))
+    assert results[0].parent is None and results[1].parent is None
+
+
+def test_a_daughter_of_a_junction_whose_depth_disagrees_starts_inside_its_parent():
+    # Parent and daughter meet at one junction landmark pair; the daughter's 3D start came
+    # out 5 mm off in depth (outside the parent's 1 mm lumen): moved onto the parent's end.
+    from vesselcad.pipeline import _link_parents
+
+    s = np.linspace(0.0, 1.0, 61)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [30.0, 0.0, 0.0]
+    child = s * [20.0, 20.0, 0.0]
+    err = np.clip(1.0 - np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(child, axis=0), axis=1))] / 10.0, 0, 1)
+    results = [_branch(0, parent, end=(3, 4)),
+               _branch(1, child, child + err[:, None] * [0.0, 0.0, 5.0], start=(3, 4))]
+    _link_parents(results)
+    assert results[1].parent == 0
+    assert np.linalg.norm(results[1].points_mm[0] - parent[-1]) < 1e-9
+    assert results[1].warnings == ["start moved 5.0 mm onto branch 0, outside of whose lumen it was"]
+    # farther than MAX_JOIN_GAP_MM: linked, left where it is (the solid reports it)
+    far = [_branch(0, parent, end=(3, 4)), _branch(1, child, child + [0.0, 0.0, 12.0], start=(3, 4))]
+    _link_parents(far)
+    assert far[1].parent == 0 and far[1].warnings == []
+
+
+def test_hooked_centreline_ends_are_cut_and_smooth_ones_kept():
+    from vesselcad.pipeline import _without_hooks
+
+    x = np.arange(0.0, 30.01, 0.5)
+    line = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    # a last sample that swings back 0.5 mm (a 155-degree turn at the line's end) and, 3 mm
+    # from the start, a sample 0.6 mm aside (a 100-degree turn there): both cut at the turn
+    hooked = np.vstack([line, line[-1] + [-0.45, 0.2, 0.0]])
+    hooked[6] += [0.0, 0.6, 0.0]
+    out, note = _without_hooks(hooked)
+    assert np.array_equal(out, hooked[6:-1])
+    assert note.startswith("hooked ends cut (3.3 mm at the start, 0.5 mm at the end)")
+    # a coronary-like bend (radius 5 mm, 90 degrees) and a hook 8 mm from the end stay
+    t = np.linspace(0.0, np.pi / 2, 16)
+    bend = np.vstack([line, line[-1] + 5.0 * np.column_stack([np.sin(t), 1 - np.cos(t), 0 * t])[1:]])
+    assert _without_hooks(bend)[1] == ""
+    far = line.copy()
+    far[-17] += [0.0, 0.6, 0.0]
+    assert _without_hooks(far)[1] == ""

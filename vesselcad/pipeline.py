@@ -47,6 +47,20 @@ MAX_REPROJECTION_MAX_PX = 10.0
 #: 3D points farther than this from the isocentre are outside the heart (the isocentre is set on
 #: the heart; coronary trees span about +-60 mm around it) (mm).
 MAX_RADIUS_FROM_ISOCENTRE_MM = 100.0
+#: A 3D centreline's end is cut where it turns by more than HOOK_TURN_DEG degrees
+#: between two 0.5 mm samples within HOOK_REACH_MM of it (``_without_hooks``).
+HOOK_TURN_DEG = 60.0
+HOOK_REACH_MM = 5.0
+#: A branch without a parent whose start lies within this many pixels of another
+#: branch's 2D piece in both views leaves that branch (see ``_link_parents``)...
+JOIN_PX = 3.0
+#: The point it leaves is the other branch's 3D point whose projections are nearest to
+#: the start in both views, if within this many pixels (that branch's own depth can
+#: be off near its ends).
+JOIN_REPROJECTION_PX = 10.0
+#: A linked branch whose 3D start lies outside its parent's lumen has it moved onto
+#: the parent when it is at most this far (mm) from it (``_link_parents``).
+MAX_JOIN_GAP_MM = 10.0
 #: ``reconstruct(tta=...)``: which frames are segmented with mirror test-time augmentation.
 TTA_MODES = ("chosen", "all", "none")
 #: Phase matching's weight of the vessels' epipolar consistency (mm per unit, ``match_phase``'s
@@ -343,9 +357,12 @@ def _branch_3d(k: int, pair: BranchPair, views: tuple[CArmView, CArmView], metho
     except Exception as exc:  # OCCT can fail on degenerate input; one branch never loses the rest
         res.status = f"3D centreline failed ({type(exc).__name__}): {exc}"
         return res
+    pts, cut = _without_hooks(pts)
     if _length(pts) < MIN_LENGTH_MM:
         res.status = f"shorter than {MIN_LENGTH_MM} mm in 3D"
         return res
+    if cut:
+        res.warnings.append(cut)
     ra = _radius_along(pts, va, pair.points_a_px, pair.radius_a_px)
     rb = _radius_along(pts, vb, pair.points_b_px, pair.radius_b_px)
     r = ndimage.median_filter(0.5 * (ra + rb), size=min(9, len(pts) | 1), mode="nearest")
@@ -377,11 +394,43 @@ def _branch_3d(k: int, pair: BranchPair, views: tuple[CArmView, CArmView], metho
     return res
 
 
-def _link_parents(results: list[BranchResult]) -> None:
+def _without_hooks(pts: np.ndarray, reach_mm: float = HOOK_REACH_MM, max_turn_deg: float = HOOK_TURN_DEG
+                   ) -> tuple[np.ndarray, str]:
+    """``pts`` without a hook at either end, and a note of what was cut ('' if nothing).
+
+    A turn sharper than ``max_turn_deg`` between consecutive samples (0.5 mm
+    apart: a bend radius under ~0.5 mm, which no vessel has) within ``reach_mm``
+    of an end is where a skeleton bent into a junction, or the bridge at a free
+    end swung back: the end is cut there.
+    """
+    if len(pts) < 4:
+        return pts, ""
+    steps = np.diff(pts, axis=0)
+    size = np.linalg.norm(steps, axis=1)
+    unit = steps / np.maximum(size, 1e-12)[:, None]
+    s = np.r_[0.0, np.cumsum(size)]
+    sharp = np.flatnonzero((unit[1:] * unit[:-1]).sum(1) < np.cos(np.radians(max_turn_deg))) + 1
+    head = sharp[s[sharp] <= reach_mm]
+    tail = sharp[s[-1] - s[sharp] <= reach_mm]
+    lo = int(head.max()) if head.size else 0
+    hi = int(tail.min()) + 1 if tail.size else len(pts)
+    if hi - lo < 2 or (lo == 0 and hi == len(pts)):
+        return pts, ""
+    return pts[lo:hi], (f"hooked ends cut ({s[lo]:.1f} mm at the start, {s[-1] - s[hi - 1]:.1f} mm at the "
+                        f"end): turns sharper than {max_turn_deg:g} degrees within {reach_mm:g} mm of an end")
+
+
+def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] | None = None) -> None:
     """Parent of each branch: the branch whose end is its start landmark, else the nearest one.
 
     Candidate links (child start within 2 mm + 1.5 radii of another branch's
     centreline) are accepted cheapest first while they keep the forest acyclic.
+    Given the views, a branch still without a parent whose start lies on another
+    branch in both images (within :data:`JOIN_PX`) is joined to it there. A child
+    whose 3D start is then outside its parent's lumen (the two curves disagree in
+    depth near the junction, where a vessel runs along the epipolar lines) has its
+    start moved onto the parent, up to :data:`MAX_JOIN_GAP_MM`: the solid needs the
+    child to start inside its parent.
     """
     ok = [b for b in results if b.ok]
     if not ok:
@@ -396,12 +445,11 @@ def _link_parents(results: list[BranchResult]) -> None:
                 continue
             d, i = trees[p.id].query(start)
             tol = 2.0 + 1.5 * float(p.radius_mm[i])
-            same_landmark = (c.pair.start == p.pair.end and None not in c.pair.start)
-            if same_landmark:
-                d = min(d, 0.0)
+            if c.pair.start == p.pair.end and None not in c.pair.start:
+                d, i = 0.0, len(p.points_mm) - 1  # the junction is the parent's end
             elif d > tol:
                 continue
-            cand.append((d, c.id, p.id))
+            cand.append((float(d), c.id, p.id, int(i), ""))
     root = {b.id: b.id for b in ok}
 
     def find(x: int) -> int:
@@ -410,16 +458,81 @@ def _link_parents(results: list[BranchResult]) -> None:
             x = root[x]
         return x
 
-    has_parent: set[int] = set()
-    for _d, c, p in sorted(cand):
-        if c in has_parent:
+    links: dict[int, tuple[int, int, str]] = {}
+
+    def accept(candidates: list[tuple[float, int, int, int, str]]) -> None:
+        for _cost, c, p, i, why in sorted(candidates):
+            if c in links:
+                continue
+            rc, rp = find(c), find(p)
+            if rc == rp:
+                continue
+            root[rc] = rp
+            links[c] = (p, i, why)
+            by_id[c].parent = p
+
+    accept(cand)
+    if views is not None:
+        accept(_joins_in_both_views(ok, views, set(links)))
+    for c, (p, i, why) in links.items():
+        child, par = by_id[c], by_id[p]
+        target = par.points_mm[i]
+        gap = float(np.linalg.norm(child.points_mm[0] - target))
+        if par.radius_mm[i] < gap <= MAX_JOIN_GAP_MM:
+            child.points_mm = _moved_start(child.points_mm, target)
+            child.warnings.append(f"{why}start moved {gap:.1f} mm onto branch {p}, outside of whose "
+                                  "lumen it was")
+
+
+def _joins_in_both_views(ok: list[BranchResult], views: tuple[CArmView, CArmView], linked: set[int]
+                         ) -> list[tuple[float, int, int, int, str]]:
+    """Candidate links of the branches without a parent whose start lies on another
+    branch in both images: (cost px, child, parent, index of the parent's point, note).
+
+    The point is the other branch's 3D point whose projections are nearest the
+    start in both views (within :data:`JOIN_REPROJECTION_PX`: its own depth can be
+    off near its ends), or its end where the start is at its 2D end (a vessel that
+    continues it). Not where the other branch starts too: two daughters of one
+    parent that was not reconstructed.
+    """
+    va, vb = views
+    proj = {b.id: (va.project(b.points_mm), vb.project(b.points_mm)) for b in ok}
+    joins = []
+    for c in ok:
+        if c.id in linked:
             continue
-        rc, rp = find(c), find(p)
-        if rc == rp:
-            continue
-        root[rc] = rp
-        has_parent.add(c)
-        by_id[c].parent = p
+        sa, sb = c.pair.points_a_px[0], c.pair.points_b_px[0]
+        for p in ok:
+            if p.id == c.id:
+                continue
+            on = max(float(distance_to_polyline(sa[None], p.pair.points_a_px)[0]),
+                     float(distance_to_polyline(sb[None], p.pair.points_b_px)[0]))
+            if on > JOIN_PX:
+                continue
+            end_px = max(np.linalg.norm(sa - p.pair.points_a_px[-1]),
+                         np.linalg.norm(sb - p.pair.points_b_px[-1]))
+            if end_px <= JOIN_PX:
+                i, off = len(p.points_mm) - 1, 0.0
+            else:
+                pa, pb = proj[p.id]
+                offs = np.maximum(np.linalg.norm(pa - sa, axis=1), np.linalg.norm(pb - sb, axis=1))
+                i = int(np.argmin(offs))
+                off = float(offs[i])
+            along = float(np.linalg.norm(np.diff(p.points_mm[:i + 1], axis=0), axis=1).sum())
+            if off <= JOIN_REPROJECTION_PX and along > p.radius_mm[0]:
+                note = f"starts on branch {p.id} in both views ({on:.1f} px): "
+                joins.append((on + off, c.id, p.id, i, note))
+    return joins
+
+
+def _moved_start(points: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``points`` with the first one moved to ``target``, the shift fading out (raised
+    cosine) over three times its size (at least 5 mm, at most half the curve)."""
+    shift = np.asarray(target, float) - points[0]
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    span = min(max(3.0 * float(np.linalg.norm(shift)), 5.0), 0.5 * float(s[-1]))
+    w = np.where(s < span, 0.5 * (1.0 + np.cos(np.pi * np.minimum(s / max(span, 1e-9), 1.0))), 0.0)
+    return points + w[:, None] * shift
 
 
 def _summary(results: list[BranchResult]) -> dict[str, float]:
@@ -625,7 +738,7 @@ def reconstruct(
             bar.update()
     if bar is not None:
         bar.close()
-    _link_parents(results)
+    _link_parents(results, views)
     timings["centrelines_3d"] = time.perf_counter() - t
     for b in results:
         if not b.ok:
