@@ -73,6 +73,9 @@ FUZZY_MM = 1e-5
 #: Edges shorter than this (mm) are merged by :meth:`VesselSolid.without_short_edges`
 #: (the CFD mesher's default): far below any element, above OCCT's round-off.
 SHORT_EDGE_MM = 0.02
+#: The default mesh deflection is the smallest pipe-end radius / 50, but not below
+#: this radius / 50 (mm).
+MESH_MIN_RADIUS_MM = 0.3
 #: Time limit (s) of OCCT's face unification after the union (normally ~0.2 s per
 #: tree; it can loop forever, see :func:`_tidy`).
 TIDY_TIMEOUT_S = 20.0
@@ -609,7 +612,9 @@ class VesselSolid:
     def _mesh(self, linear_deflection: float | None, angular_deflection: float) -> float:
         if linear_deflection is None:
             r_min = min([p.end_radius for p in self.pipes] + [p.start_radius for p in self.pipes] or [1.0])
-            linear_deflection = r_min / 50.0
+            # a thread-thin end (a radius clamped at a kink) must not make the whole
+            # tree's mesh millions of triangles
+            linear_deflection = max(r_min, MESH_MIN_RADIUS_MM) / 50.0
         if not (linear_deflection > 0 and angular_deflection > 0):
             raise ArgumentError("linear_deflection, angular_deflection: expected positive numbers, got "
                                 f"{linear_deflection!r}, {angular_deflection!r}")
@@ -673,7 +678,8 @@ class VesselSolid:
         ----------
         tolerance : float, optional
             Largest distance (mm) between the triangles and the exact surface
-            (OCCT linear deflection); default the smallest radius / 50, which
+            (OCCT linear deflection); default the smallest radius / 50 (radii under
+            :data:`MESH_MIN_RADIUS_MM` count as that), which
             with the default angular deflection keeps the mesh volume within 1%
             of the solid's (about -0.7% on phantom trees, docs/results.md).
         angular_deflection : float
@@ -728,7 +734,8 @@ class VesselSolid:
                    angular_deflection: float = 0.3, ascii: bool = False) -> None:
         """Write an STL (binary unless ``ascii``) of the triangulated solid, atomically.
 
-        ``linear_deflection`` (mm) defaults to the smallest radius / 50; see :meth:`to_trimesh`.
+        ``linear_deflection`` (mm) defaults to the smallest radius (at least 0.3 mm) / 50;
+        see :meth:`to_trimesh`.
         """
         # From the checked triangulation (OCCT's own writer would also write the
         # zero-area triangle at a dome's pole, which opens the mesh for readers).
