@@ -921,7 +921,7 @@ def test_a_tree_with_two_roots_keeps_the_larger_and_says_why():
 def test_a_stub_between_two_close_junctions_joins_the_vessel_after_it():
     # A reconstruction can leave a piece of ~1 mm between two junctions: parent r = 1.5 along z
     # to z = 30, a 1 mm stub (r = 1.2) along x from its end, and a vessel (r = 1) leaving the
-    # stub's end. The stub is shorter than its radius and the parent's together (2.7 mm): it
+    # stub's end. The stub is shorter than 1.5 x its radius and the parent's together (4.05 mm): it
     # becomes the start of the vessel after it when that continues it within 90 degrees; one
     # without children is left out (inside the parent but for its cap).
     # Swept as a pipe of its own, such a cap inside the parent's domed end took OCCT's fuse
@@ -958,8 +958,8 @@ def test_a_stub_between_two_close_junctions_joins_the_vessel_after_it():
         assert chk["valid"] and chk["watertight"] and chk["solids"] == 1
     # the centrelines keep it: only the solid's pipes change
     assert len(tree(1.0, 0.5)) == 3
-    # 3 mm is longer than the two radii together: a vessel of its own, kept
-    longer = tree(3.0, np.radians(45.0)).solid()
+    # 5 mm is longer than 1.5 x the two radii together: a vessel of its own, kept
+    longer = tree(5.0, np.radians(45.0)).solid()
     assert not longer.failed and sorted(p.branch_id for p in longer.pipes) == [0, 1, 2]
 
 

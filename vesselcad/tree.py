@@ -58,7 +58,7 @@ CHILD_RADIUS_SHARE = 0.9
 #: A child shorter than this many times its radius and its parent's together at its start
 #: is a stub: in the solid it starts the child that continues it, or, childless, is left
 #: out (:meth:`VesselTree.pipe_specs`).
-STUB_RADII = 1.0
+STUB_RADII = 1.5
 #: A child starting farther than this many parent radii from the parent's
 #: centreline is not pulled onto it.
 MAX_START_GAP_RADII = 2.0
@@ -937,8 +937,8 @@ def _without_stubs(tree: VesselTree) -> tuple[VesselTree, dict[int, dict[int, st
                 c = kids[int(np.argmax(cos))]
                 joined = _merge_pair(b, c, TOL_MM)
                 joined.warnings.append(f"starts with branch {b.id}, a stub of {b.length_mm:.1f} mm "
-                                       f"(shorter than its radius and its parent's together) between two "
-                                       f"junctions")
+                                       f"(shorter than {STUB_RADII:g} x its radius and its parent's "
+                                       f"together) between two junctions")
                 branches[c.id] = replace(joined, id=c.id, name=c.name, parent=par.id, parent_s_mm=None)
                 for o in kids:
                     if o.id != c.id:
@@ -946,9 +946,9 @@ def _without_stubs(tree: VesselTree) -> tuple[VesselTree, dict[int, dict[int, st
                 new_parent = c.id
             else:
                 stubs.setdefault(par.id, {})[b.id] = (
-                    f"a stub of {b.length_mm:.1f} mm, shorter than its radius and its parent's together "
-                    f"({rc:.1f} + {rp:.1f} mm) where it starts: left out of the solid (inside branch "
-                    f"{par.id} but for its end cap)")
+                    f"a stub of {b.length_mm:.1f} mm, shorter than {STUB_RADII:g} x its radius and its "
+                    f"parent's together ({rc:.1f} + {rp:.1f} mm) where it starts: left out of the solid "
+                    f"(inside branch {par.id} but for its end cap)")
                 new_parent = par.id
             for sid, why in stubs.pop(b.id, {}).items():  # stubs left out of the stub itself
                 stubs.setdefault(new_parent, {})[sid] = why
