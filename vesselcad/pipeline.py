@@ -474,7 +474,11 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
     accept(cand)
     if views is not None:
         accept(_joins_in_both_views(ok, views, set(links)))
-    for c, (p, i, why) in links.items():
+    def depth(c: int) -> int:
+        return 1 + depth(links[c][0]) if c in links else 0
+
+    for c in sorted(links, key=depth):  # parents first: a moved parent moves its children's targets
+        p, i, why = links[c]
         child, par = by_id[c], by_id[p]
         target = par.points_mm[i]
         gap = float(np.linalg.norm(child.points_mm[0] - target))

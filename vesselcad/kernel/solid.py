@@ -1016,8 +1016,8 @@ def _tidy(shape: TopoDS_Shape, history: _History, warnings_out: list[str] | None
           ) -> TopoDS_Shape:
     """Merge the faces and edges the boolean split that lie on one surface or curve.
 
-    OCCT's face unification can loop forever on some unions (kept in
-    tests/data/hang/): it is first tried in a forked child with a time limit of
+    OCCT's face unification can loop forever on some unions (one is kept in
+    tests/data/unify_hang_rca_2001.json): it is first tried in a forked child with a time limit of
     :data:`TIDY_TIMEOUT_S`; if that does not finish, only edges are merged (bounded
     the same way), and if even that fails, the union stays as the boolean left it.
     """
