@@ -746,9 +746,9 @@ def test_a_branch_the_general_fuse_loses_is_added_back(monkeypatch):
     real = ks._general_fuse
     calls = []
 
-    def lossy(shapes, fuzzy, parallel=True):
+    def lossy(shapes, fuzzy, parallel=True, timeout_s=None):
         calls.append(len(shapes))
-        return real(shapes[:-1] if len(calls) == 1 else shapes, fuzzy, parallel)
+        return real(shapes[:-1] if len(calls) == 1 else shapes, fuzzy, parallel, timeout_s)
 
     monkeypatch.setattr(ks, "_general_fuse", lossy)
     solid = _y_tree().solid()
@@ -990,3 +990,127 @@ def test_work_in_a_forked_child_is_bounded_in_time():
     assert ks._finishes(lambda: sum(range(1000)), 10.0) is True
     assert ks._finishes(lambda: 1 / 0, 10.0) is False
     assert ks._finishes(lambda: time.sleep(3600), 0.5) is False
+
+
+def _roles(solid):
+    roles = [t.role for _f, t in solid.faces]
+    return roles.count("inlet"), roles.count("outlet")
+
+
+def test_the_fuse_in_the_helper_process_keeps_geometry_and_face_history(monkeypatch):
+    # The general fuse runs in a helper process (so that it can be given a time limit) and its
+    # face history is replayed here: the Y's volume and its caps' roles must be those of the
+    # analytic Y (one inlet, three outlets: the Monte Carlo volume of the test above).
+    import vesselcad.kernel.solid as ks
+
+    bounded = _y_tree().solid()
+    assert isinstance(ks._WORKER, ks.FuseWorker)  # the helper ran it
+    monkeypatch.setattr(ks, "FUSE_TIMEOUT_S", None)  # unbounded: in this process
+    here = _y_tree().solid()
+    assert _roles(bounded) == _roles(here) == (1, 3)
+    assert bounded.volume == pytest.approx(here.volume, rel=1e-9)
+    assert len(bounded.faces) == len(here.faces)
+    assert bounded.check()["watertight"]
+
+
+def test_a_general_fuse_over_its_time_limit_falls_back_to_the_branch_by_branch_union(monkeypatch):
+    import vesselcad.kernel.solid as ks
+
+    monkeypatch.setattr(ks, "FUSE_TIMEOUT_S", 1e-3)
+    solid = _y_tree().solid()
+    assert ("OCCT's general fuse did not finish within 0.001 s; fused the branches one by one in tree order"
+            in solid.warnings)
+    assert not solid.failed and solid.branch_ids == [0, 1, 2]
+    check = solid.check()
+    assert check["valid"] and check["watertight"] and check["solids"] == 1
+    assert _roles(solid) == (1, 3)
+    # every point of the analytic Y well inside its walls is inside the solid
+    rng = np.random.default_rng(1)
+    p = np.array([-19.0, -2.1, -0.1]) + np.array([38.0, 4.2, 40.2]) * rng.random((4000, 3))
+    deep = _inside_y(p) & ~_inside_y_shell(p, 0.05)
+    assert ks._inside(solid.shape, p[deep]).all()
+
+
+def _inside_y_shell(p, eps):
+    """Points within ``eps`` of the analytic Y's surface (either side)."""
+    def dist(p, a, d, length, r):
+        t = np.clip((p - a) @ d, 0.0, length)
+        radial = np.linalg.norm(p - a - t[:, None] * d, axis=1)
+        return np.abs(radial - r)
+
+    z = np.array([0.0, 0.0, 1.0])
+    j = np.array([0.0, 0.0, 20.0])
+    d = np.minimum.reduce([dist(p, np.zeros(3), z, 40, 2.0), dist(p, j, LEFT, 25, 1.4),
+                           dist(p, j, RIGHT, 25, 1.4)])
+    return (d < eps) | (p[:, 2] < eps) | (np.abs(p[:, 2] - 40.0) < eps)
+
+
+def test_a_branch_whose_union_overruns_is_left_out_and_named(monkeypatch):
+    import vesselcad.kernel.solid as ks
+
+    monkeypatch.setattr(ks, "FUSE_TIMEOUT_S", 1e-3)
+    monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 1e-3)
+    solid = _y_tree().solid()
+    assert solid.branch_ids == [0]
+    assert set(solid.failed) == {1, 2}
+    for why in solid.failed.values():
+        assert why == "OCCT's boolean union with the tree did not finish within 0.001 s"
+    # the root alone: a capped cylinder r = 2, length 40
+    assert solid.volume == pytest.approx(np.pi * 2.0**2 * 40.0, rel=1e-3)
+
+
+def test_the_helper_process_is_killed_when_a_job_overruns_and_restarted_for_the_next():
+    from vesselcad.kernel.fuse_worker import FuseWorker
+
+    pipes = _y_tree().solid().pipes
+    worker = FuseWorker()
+    with pytest.raises(TimeoutError, match="did not finish within 0.001 s"):
+        worker.fuse([p.solid for p in pipes], 1e-5, True, 1e-3)
+    assert worker._proc is None  # killed
+    done = worker.fuse([p.solid for p in pipes], 1e-5, True, 60.0)
+    # the union of the three capped cylinders (no tidying: the same volume as the solid's)
+    assert done is not None
+    assert shape_volume(done.Shape()) == pytest.approx(_y_tree().solid().volume, rel=1e-9)
+    worker.stop()
+
+
+def test_without_a_helper_process_the_fuse_runs_here(monkeypatch):
+    import sys
+
+    import vesselcad.kernel.solid as ks
+
+    monkeypatch.setattr(ks, "_WORKER", None)
+    monkeypatch.setattr(sys, "executable", "/nonexistent/python")
+    solid = _y_tree().solid()
+    assert ks._WORKER is False  # tried once, then fused in this process
+    assert not solid.failed and _roles(solid) == (1, 3)
+    assert solid.check()["watertight"]
+
+
+def test_a_forked_copy_starts_its_own_helper_and_leaves_the_parents_alone():
+    import os
+
+    import vesselcad.kernel.solid as ks
+
+    if not hasattr(os, "fork"):
+        pytest.skip("no fork on this platform")
+    pipes = _y_tree().solid().pipes
+    if not isinstance(ks._WORKER, ks.FuseWorker):
+        pytest.skip("no helper process on this machine")
+    parent_helper = ks._WORKER._proc
+    expected = shape_volume(ks._general_fuse([p.solid for p in pipes], 1e-5, True, 60.0).Shape())
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        code = 1
+        try:
+            op = ks._general_fuse([p.solid for p in pipes], 1e-5, True, 60.0)
+            ok = op is not None and abs(shape_volume(op.Shape()) - expected) < 1e-9 * expected
+            code = 0 if ok and ks._WORKER._proc is not parent_helper else 2
+            ks._WORKER.stop()
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+    assert ks._WORKER._proc is parent_helper and parent_helper.poll() is None
+    again = ks._general_fuse([p.solid for p in pipes], 1e-5, True, 60.0)
+    assert shape_volume(again.Shape()) == pytest.approx(expected, rel=1e-12)

@@ -816,7 +816,7 @@ class VesselTree:
             gathers the branches' warnings (radius clamps, moved starts).
         """
         from .kernel.pipes import branch_pipe, seam_angles
-        from .kernel.solid import fuse_pipes
+        from .kernel.solid import fuse_pipes, start_fuse_worker
 
         if not self.branches:
             raise ArgumentError("tree: no branches")
@@ -825,6 +825,8 @@ class VesselTree:
         import time
 
         t0 = time.perf_counter()
+        if len(self.branches) > 1:
+            start_fuse_worker()  # the booleans' helper process starts while the pipes are built
         specs = self.pipe_specs(tol_mm, merge, max_merge_angle_deg)
         seams = seam_angles(specs)
         for s in specs:

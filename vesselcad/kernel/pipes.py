@@ -41,6 +41,7 @@ from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape, TopoDS_Shell, TopoDS_S
 from scipy import interpolate
 
 from ..errors import GeometryError
+from . import solid as _solid
 from .nurbs import _int_array, _real_array, is_valid, knots_and_mults
 from .solid import FUZZY_MM, BranchPipe, _general_fuse, _History, _quick_volume, _subshapes
 
@@ -608,7 +609,12 @@ def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int,
     # object for the same domain and would not intersect the pieces where they cross.
     parts = [tube_solid(surface.Copy(), (v0, v1), end_dome if v1 == bounds[-1] else None)
              for v0, v1 in zip(bounds[:-1], bounds[1:], strict=True)]
-    op = _general_fuse([p[0] for p in parts], FUZZY_MM)
+    try:
+        op = _general_fuse([p[0] for p in parts], FUZZY_MM, timeout_s=_solid.STEP_FUSE_TIMEOUT_S)
+    except TimeoutError:
+        raise GeometryError(f"branch {branch_id}: OCCT's union of the {len(parts)} pieces of a pipe that "
+                            f"overlaps itself did not finish within {_solid.STEP_FUSE_TIMEOUT_S:g} s"
+                            ) from None
     shape = op.Shape() if op is not None else None
     solids = _subshapes(shape, TopAbs_SOLID) if shape is not None else []
     if len(solids) != 1 or not is_valid(solids[0]):

@@ -4,7 +4,10 @@
 general fuse (all arguments at once, parallel, oriented bounding boxes, a small
 fuzzy value), falls back to pairwise fusing in tree order when that fails,
 and leaves out (and reports) a branch whose union fails or that does not touch
-the rest of the tree. :class:`VesselSolid` keeps, for every face of the
+the rest of the tree. The booleans run in a helper process
+(:mod:`.fuse_worker`) with time limits (:data:`FUSE_TIMEOUT_S`,
+:data:`STEP_FUSE_TIMEOUT_S`): a union OCCT takes minutes over falls back or
+leaves its branch out, named. :class:`VesselSolid` keeps, for every face of the
 result, the branch and the role (wall, inlet, outlet) it came from; the names
 go into STEP, and the CFD mesher uses the caps.
 """
@@ -63,6 +66,7 @@ from OCP.TopTools import (
 
 from ..errors import ArgumentError, GeometryError, OutputError, VesselcadWarning
 from ..io.atomic import atomic_path
+from .fuse_worker import FuseWorker
 from .nurbs import is_valid
 
 __all__ = ["BranchPipe", "FaceTag", "VesselSolid", "fuse_pipes", "shape_volume", "shape_area",
@@ -79,6 +83,14 @@ MESH_MIN_RADIUS_MM = 0.3
 #: Time limit (s) of OCCT's face unification after the union (normally ~0.2 s per
 #: tree; it can loop forever, see :func:`_tidy`).
 TIDY_TIMEOUT_S = 20.0
+#: Seconds OCCT's general fuse of all branch pipes may take (None: unbounded, in this process); a
+#: union that takes longer is abandoned for the branch-by-branch union.
+FUSE_TIMEOUT_S: float | None = 60.0
+#: Seconds one union of a single branch with the tree may take; a branch whose union takes longer
+#: is left out (and named).
+STEP_FUSE_TIMEOUT_S: float | None = 20.0
+# the helper process of the bounded booleans: None until needed, False where it cannot run
+_WORKER: FuseWorker | None | bool = None
 #: Linear (mm) and angular (rad) deflection of the throwaway triangulation that
 #: classifies probe points (:func:`_inside`; where it strays from the surface near
 #: a point, the point is classified exactly).
@@ -281,7 +293,26 @@ def _list(shapes: list[TopoDS_Shape]) -> TopTools_ListOfShape:
     return out
 
 
-def _general_fuse(shapes: list[TopoDS_Shape], fuzzy: float, parallel: bool = True) -> BRepAlgoAPI_Fuse | None:
+def _general_fuse(shapes: list[TopoDS_Shape], fuzzy: float, parallel: bool = True,
+                  timeout_s: float | None = None) -> Any:
+    """OCCT's general fuse of ``shapes`` (the first one the argument, the rest tools).
+
+    With ``timeout_s``, it runs in the helper process of :mod:`.fuse_worker` and
+    raises :class:`TimeoutError` when it takes longer (the helper is killed); the
+    returned object then replays the face history (``Shape``, ``IsDeleted``,
+    ``Modified``). Where no helper process can run, it runs here, unbounded.
+    Returns None when OCCT reports failure.
+    """
+    global _WORKER
+    if timeout_s is not None and _WORKER is not False:
+        if _WORKER is None:
+            _WORKER = FuseWorker()
+        try:
+            return _WORKER.fuse(shapes, fuzzy, parallel, timeout_s)
+        except TimeoutError:  # (an OSError too)
+            raise
+        except OSError:  # no helper process can run here: fuse in this process from now on
+            _WORKER = False
     op = BRepAlgoAPI_Fuse()
     op.SetArguments(_list(shapes[:1]))
     op.SetTools(_list(shapes[1:]))
@@ -291,6 +322,20 @@ def _general_fuse(shapes: list[TopoDS_Shape], fuzzy: float, parallel: bool = Tru
     op.SetToFillHistory(True)
     op.Build()
     return op if op.IsDone() else None
+
+
+def start_fuse_worker() -> None:
+    """Start the helper process that runs the booleans with a time limit (it takes about a
+    second to import OCCT; :meth:`VesselTree.solid` starts it before building the pipes)."""
+    global _WORKER
+    if FUSE_TIMEOUT_S is None or _WORKER is False:
+        return
+    if _WORKER is None:
+        _WORKER = FuseWorker()
+    try:
+        _WORKER.start()
+    except OSError:
+        _WORKER = False
 
 
 class _History:
@@ -1068,11 +1113,15 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     history = _History()
     result: TopoDS_Shape | None = None
     kept = list(pipes)
-    general = False
+    general = slow = False
     if len(pipes) == 1:
         result = pipes[0].solid
     else:
-        op = _general_fuse([p.solid for p in pipes], fuzzy_mm, parallel)
+        try:
+            op = _general_fuse([p.solid for p in pipes], fuzzy_mm, parallel, FUSE_TIMEOUT_S)
+        except TimeoutError:
+            op = None
+            slow = True
         if op is not None:
             shape = op.Shape()
             trial = _History()
@@ -1102,7 +1151,9 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
         result, general, kept = None, False, list(pipes)
         failed.clear()
     if result is None and len(pipes) > 1:
-        warnings.append("general fuse failed; fused the branches one by one in tree order")
+        warnings.append(f"OCCT's general fuse did not finish within {FUSE_TIMEOUT_S:g} s; fused the branches "
+                        "one by one in tree order" if slow else
+                        "general fuse failed; fused the branches one by one in tree order")
         history = _History()
         result, kept = _pairwise(pipes, fuzzy_mm, history, failed)
         t1 = time.perf_counter()
@@ -1197,7 +1248,10 @@ def _add_one_by_one(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _Hist
                     fuzzy: float) -> TopoDS_Shape | None:
     """``shape`` fused with each of ``pipes`` in turn (None if a union fails or falls apart)."""
     for p in pipes:
-        op = _general_fuse([shape, p.solid], fuzzy)
+        try:
+            op = _general_fuse([shape, p.solid], fuzzy, timeout_s=STEP_FUSE_TIMEOUT_S)
+        except TimeoutError:
+            return None
         if op is None or _count_solids(op.Shape()) != 1:
             return None
         history.ops.append(op)
@@ -1464,7 +1518,13 @@ def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _His
     for s in solids:
         if s.IsSame(keep):
             continue
-        op = _general_fuse([keep, s], fuzzy)
+        try:
+            op = _general_fuse([keep, s], fuzzy, timeout_s=STEP_FUSE_TIMEOUT_S)
+        except TimeoutError:
+            for b in owner(s):
+                failed[b] = (f"OCCT's union of its piece with the rest of the tree did not finish within "
+                             f"{STEP_FUSE_TIMEOUT_S:g} s")
+            continue
         merged = op.Shape() if op is not None else None
         if merged is not None and _count_solids(merged) == 1 and is_valid(merged):
             history.ops.append(op)
@@ -1485,7 +1545,12 @@ def _pairwise(pipes: list[BranchPipe], fuzzy_mm: float, history: _History, faile
         if p.parent is not None and p.parent in failed:
             failed[p.branch_id] = f"its parent branch {p.parent} was left out"
             continue
-        op = _general_fuse([current, p.solid], fuzzy_mm)
+        try:
+            op = _general_fuse([current, p.solid], fuzzy_mm, timeout_s=STEP_FUSE_TIMEOUT_S)
+        except TimeoutError:
+            failed[p.branch_id] = (f"OCCT's boolean union with the tree did not finish within "
+                                   f"{STEP_FUSE_TIMEOUT_S:g} s")
+            continue
         shape = op.Shape() if op is not None else None
         volume = _quick_volume(shape) if shape is not None else 0.0
         if (shape is None or _count_solids(shape) != 1 or not is_valid(shape)
