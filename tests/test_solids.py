@@ -1114,3 +1114,48 @@ def test_a_forked_copy_starts_its_own_helper_and_leaves_the_parents_alone():
     assert ks._WORKER._proc is parent_helper and parent_helper.poll() is None
     again = ks._general_fuse([p.solid for p in pipes], 1e-5, True, 60.0)
     assert shape_volume(again.Shape()) == pytest.approx(expected, rel=1e-12)
+
+
+def test_a_slow_union_adding_back_a_lost_branch_gives_way_to_the_branch_by_branch_union(monkeypatch):
+    # tests/data/README.md: the general fuse of this tree loses three branches, and adding the
+    # first back took OCCT 110 s; with a 5 s limit on single-branch unions the tree is fused
+    # branch by branch instead (each of those unions takes under a second), every branch kept.
+    import vesselcad.kernel.solid as ks
+
+    if not isinstance(ks._WORKER, ks.FuseWorker) and ks._WORKER is not None:
+        pytest.skip("no helper process on this machine")
+    monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 5.0)
+    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "fuse_slow_lca_2006.json")
+    solid = tree.solid()
+    notes = [w for w in solid.warnings if "fused the branches one by one in tree order" in w]
+    assert len(notes) == 1 and "the general fuse lost branches" in notes[0]
+    assert "adding them back did not finish within 5 s" in notes[0]
+    check = solid.check()
+    assert check["valid"] and check["watertight"] and check["solids"] == 1
+    assert not solid.failed and len(solid.branch_ids) == len(solid.pipes)
+    for pipe in solid.pipes:
+        assert ks._inside(solid.shape, pipe.trusted_probes()).all()
+
+
+def test_a_lost_branch_whose_adding_back_overruns_is_reported_as_such(monkeypatch):
+    import vesselcad.kernel.solid as ks
+
+    real = ks._general_fuse
+    calls = []
+
+    def lossy(shapes, fuzzy, parallel=True, timeout_s=None):
+        calls.append(len(shapes))
+        if len(calls) == 1:  # the general fuse loses the right branch
+            return real(shapes[:-1], fuzzy, parallel, timeout_s)
+        if len(calls) == 2:  # adding it back overruns
+            raise TimeoutError("overran")
+        return real(shapes, fuzzy, parallel, timeout_s)
+
+    monkeypatch.setattr(ks, "_general_fuse", lossy)
+    monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 7.0)
+    solid = _y_tree().solid()
+    assert calls == [3, 2, 2, 2]  # general fuse, adding back, then the two children in tree order
+    assert ("the general fuse lost branches [2] and adding them back did not finish within 7 s; fused "
+            "the branches one by one in tree order") in solid.warnings
+    assert not solid.failed and _roles(solid) == (1, 3)
+    assert solid.check()["watertight"]

@@ -1113,7 +1113,8 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     history = _History()
     result: TopoDS_Shape | None = None
     kept = list(pipes)
-    general = slow = False
+    general = False
+    why = "general fuse failed"  # what sends the union the branch-by-branch way
     if len(pipes) == 1:
         result = pipes[0].solid
     else:
@@ -1121,7 +1122,7 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
             op = _general_fuse([p.solid for p in pipes], fuzzy_mm, parallel, FUSE_TIMEOUT_S)
         except TimeoutError:
             op = None
-            slow = True
+            why = f"OCCT's general fuse did not finish within {FUSE_TIMEOUT_S:g} s"
         if op is not None:
             shape = op.Shape()
             trial = _History()
@@ -1133,7 +1134,13 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
             missing = _missing(shape, pipes, trial)
             if missing and root not in missing:
                 lost = [p for p in pipes if p.branch_id in missing]
-                shape = _add_one_by_one(shape, lost, trial, fuzzy_mm)
+                why = f"the general fuse lost branches {missing} and adding them back failed"
+                try:
+                    shape = _add_one_by_one(shape, lost, trial, fuzzy_mm)
+                except TimeoutError:
+                    shape = None
+                    why = (f"the general fuse lost branches {missing} and adding them back did not finish "
+                           f"within {STEP_FUSE_TIMEOUT_S:g} s")
                 if shape is not None and not _missing(shape, pipes, trial):
                     warnings.append(f"the general fuse lost branches {missing}: added them one by one")
                     missing = []
@@ -1150,10 +1157,9 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     if general and not is_valid(result):
         result, general, kept = None, False, list(pipes)
         failed.clear()
+        why = "the general fuse gave an invalid solid"
     if result is None and len(pipes) > 1:
-        warnings.append(f"OCCT's general fuse did not finish within {FUSE_TIMEOUT_S:g} s; fused the branches "
-                        "one by one in tree order" if slow else
-                        "general fuse failed; fused the branches one by one in tree order")
+        warnings.append(f"{why}; fused the branches one by one in tree order")
         history = _History()
         result, kept = _pairwise(pipes, fuzzy_mm, history, failed)
         t1 = time.perf_counter()
@@ -1246,12 +1252,10 @@ def _rings_held(pipe: BranchPipe, walls: list[TopoDS_Face], pipes: list[BranchPi
 
 def _add_one_by_one(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _History,
                     fuzzy: float) -> TopoDS_Shape | None:
-    """``shape`` fused with each of ``pipes`` in turn (None if a union fails or falls apart)."""
+    """``shape`` fused with each of ``pipes`` in turn (None if a union fails or falls apart;
+    TimeoutError past :data:`STEP_FUSE_TIMEOUT_S`)."""
     for p in pipes:
-        try:
-            op = _general_fuse([shape, p.solid], fuzzy, timeout_s=STEP_FUSE_TIMEOUT_S)
-        except TimeoutError:
-            return None
+        op = _general_fuse([shape, p.solid], fuzzy, timeout_s=STEP_FUSE_TIMEOUT_S)
         if op is None or _count_solids(op.Shape()) != 1:
             return None
         history.ops.append(op)
