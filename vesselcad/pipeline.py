@@ -670,6 +670,11 @@ def reconstruct(
         lb = seg(rb.frames, progress=progress, tta=tta == "all")
     timings["segmentation"] = time.perf_counter() - t
 
+    if solid:
+        # the booleans' helper process imports OCCT (~1 s, one core) while the next stages run
+        from .kernel.solid import start_fuse_worker
+
+        start_fuse_worker()
     t = time.perf_counter()
     try:
         phase = match_phase(ra, rb, la, lb, objects=objects, pair=frames,
