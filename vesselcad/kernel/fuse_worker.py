@@ -14,6 +14,8 @@ like ``BRepAlgoAPI_Fuse``.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import json
 import os
 import queue
@@ -123,6 +125,14 @@ class FuseWorker:
         self._ready = False
         self._dir = tempfile.mkdtemp(prefix="vesselcad-fuse-")
         self._lock = threading.Lock()
+        atexit.register(self.close)
+
+    def close(self) -> None:
+        """Stop the helper and remove its folder (at exit; a forked copy leaves both alone)."""
+        if os.getpid() != self._pid:
+            return
+        self.stop()
+        shutil.rmtree(self._dir, ignore_errors=True)
 
     def _start(self) -> subprocess.Popen:
         if os.getpid() != self._pid:
@@ -210,14 +220,15 @@ class FuseWorker:
             answer = json.loads(line)
             if not answer.get("done"):
                 return None
-            return MappedFuse(shapes, _read_shape(dst), answer["images"])
+            result = _read_shape(dst)
+            for f in (src, dst):
+                with contextlib.suppress(OSError):
+                    os.remove(f)
+            return MappedFuse(shapes, result, answer["images"])
 
     def __del__(self) -> None:
-        if os.getpid() != self._pid:  # a forked copy: not ours
-            return
         try:
-            self.stop()
-            shutil.rmtree(self._dir, ignore_errors=True)
+            self.close()
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 
