@@ -769,6 +769,7 @@ def reconstruct(
     if solid and tree is not None:
         try:
             vsolid = tree.solid(progress=progress)
+            warn += [f"solid: {w}" for w in vsolid.union_warnings]
             for bid, why in vsolid.failed.items():
                 warn.append(f"solid: branch {bid} left out: {why}")
         except Exception as exc:  # the centrelines are still worth having

@@ -263,7 +263,7 @@ def round_creases(solid: VesselSolid, max_angle_deg: float = CREASE_ANGLE_DEG,
                  f"{creases[0].angle_deg:.0f} deg): left as they are"]
         return VesselSolid(solid.shape, list(solid.faces), solid.pipes, dict(solid.failed),
                            list(solid.warnings) + notes, dict(solid.timings_s), solid.specs,
-                           dict(solid.extensions))
+                           dict(solid.extensions), union_warnings=list(solid.union_warnings))
     shape, op = done
     new = TopoDS.Solid_s(_subshapes(shape, TopAbs_SOLID)[0])
     images: dict[int, list[tuple[TopoDS_Face, FaceTag]]] = {}
@@ -289,4 +289,5 @@ def round_creases(solid: VesselSolid, max_angle_deg: float = CREASE_ANGLE_DEG,
               f"{c.branches[1]} at ({c.point[0]:.1f}, {c.point[1]:.1f}, {c.point[2]:.1f}) mm: left as it is"
               for c in skipped]
     return VesselSolid(new, faces, solid.pipes, dict(solid.failed), list(solid.warnings) + notes,
-                       dict(solid.timings_s), solid.specs, dict(solid.extensions))
+                       dict(solid.timings_s), solid.specs, dict(solid.extensions),
+                       union_warnings=list(solid.union_warnings))

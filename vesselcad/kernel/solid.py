@@ -382,6 +382,9 @@ class VesselSolid:
     extensions : dict of (int, str) -> float
         Flow extensions added by :meth:`with_flow_extensions`: length (mm) per
         ``(branch_id, 'inlet' | 'outlet')``.
+    union_warnings : list of str
+        What the boolean union itself reported (a fallback, a time limit; also in
+        ``warnings``).
     """
 
     shape: TopoDS_Solid
@@ -392,6 +395,7 @@ class VesselSolid:
     timings_s: dict[str, float] = field(default_factory=dict)
     specs: list[dict[str, Any]] = field(default_factory=list, repr=False)
     extensions: dict[tuple[int, str], float] = field(default_factory=dict)
+    union_warnings: list[str] = field(default_factory=list)
     _meshed: tuple[float, float] | None = field(default=None, init=False, repr=False)
     _triangles: Any = field(default=None, init=False, repr=False)
 
@@ -930,7 +934,7 @@ def _extend(solid: VesselSolid, diameters: dict[str, float]) -> VesselSolid:
         tag = next((t for g, t in tags if g.IsSame(f)), FaceTag(-1, "unknown", "wall"))
         faces.append((TopoDS.Face_s(f), tag))
     return VesselSolid(new, faces, solid.pipes, dict(solid.failed), list(solid.warnings) + notes,
-                       dict(solid.timings_s), solid.specs, lengths)
+                       dict(solid.timings_s), solid.specs, lengths, union_warnings=list(solid.union_warnings))
 
 
 def _free_extension_lengths(solid: VesselSolid, ends: dict[tuple[int, str], dict[str, Any]],
@@ -1174,7 +1178,7 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
         raise GeometryError(f"fuse_pipes: the union is {_count_solids(result)} solids, not one")
     faces = _tag_faces(solid, kept, history, root)
     out = VesselSolid(solid, faces, list(pipes), failed, warnings,
-                      {"fuse": t1 - t0, "tidy": time.perf_counter() - t1})
+                      {"fuse": t1 - t0, "tidy": time.perf_counter() - t1}, union_warnings=list(warnings))
     return out
 
 
