@@ -1160,3 +1160,22 @@ def test_a_lost_branch_whose_adding_back_overruns_is_reported_as_such(monkeypatc
             "the branches one by one in tree order") in solid.warnings
     assert not solid.failed and _roles(solid) == (1, 3)
     assert solid.check()["watertight"]
+
+
+def test_inside_an_application_no_helper_is_started(monkeypatch):
+    # Embedded Python (CQ-editor, FreeCAD): sys.executable is the application, which must not be
+    # launched; the fuse runs in the caller's process instead.
+    import subprocess
+    import sys
+
+    import vesselcad.kernel.solid as ks
+
+    def no_process(*args, **kwargs):
+        raise AssertionError(f"started {args[0]!r}")
+
+    monkeypatch.setattr(ks, "_WORKER", None)
+    monkeypatch.setattr(sys, "executable", "/opt/freecad/bin/FreeCAD")
+    monkeypatch.setattr(subprocess, "Popen", no_process)
+    solid = _y_tree().solid()
+    assert ks._WORKER is False
+    assert not solid.failed and _roles(solid) == (1, 3) and solid.check()["watertight"]

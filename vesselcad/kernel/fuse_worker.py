@@ -19,6 +19,7 @@ import contextlib
 import json
 import os
 import queue
+import re
 import shutil
 import subprocess
 import sys
@@ -38,6 +39,12 @@ __all__ = ["FuseWorker", "MappedFuse"]
 
 #: Seconds the helper process may take to start (import OCP) before it counts as unable to run.
 STARTUP_TIMEOUT_S = 60.0
+
+
+def _is_python(executable: str | None) -> bool:
+    """Whether ``executable`` names a Python interpreter (python, python3.11, python.exe, pypy3)."""
+    return bool(executable) and re.fullmatch(r"(python|pypy)[\d.]*(w)?(\.exe)?",
+                                             os.path.basename(executable).lower()) is not None
 
 
 def _faces(shape: TopoDS_Shape) -> TopTools_IndexedMapOfShape:
@@ -141,6 +148,9 @@ class FuseWorker:
             self.__init__()
         if self._proc is not None and self._proc.poll() is None:
             return self._proc
+        if not _is_python(sys.executable) or getattr(sys, "frozen", False):
+            # embedded in an application (CQ-editor, FreeCAD): sys.executable would start the application
+            raise OSError(f"{sys.executable!r} is not a Python interpreter: no helper process")
         # run as a script: it imports OCP only (about 1 s), not this package
         self._proc = subprocess.Popen(
             [sys.executable, "-P", str(Path(__file__).resolve())], stdin=subprocess.PIPE,
