@@ -142,10 +142,6 @@ class FuseWorker:
         shutil.rmtree(self._dir, ignore_errors=True)
 
     def _start(self) -> subprocess.Popen:
-        if os.getpid() != self._pid:
-            # a forked copy of the process that started the helper: leave that one (and its
-            # folder) to its owner, start our own
-            self.__init__()
         if self._proc is not None and self._proc.poll() is None:
             return self._proc
         if not _is_python(sys.executable) or getattr(sys, "frozen", False):
@@ -170,6 +166,8 @@ class FuseWorker:
     def start(self) -> None:
         """Start the helper now (it takes about a second to import OCCT), if not running."""
         if os.getpid() != self._pid:
+            # a forked copy of the process that started the helper: leave that one (and its
+            # folder) to its owner, start our own
             self.__init__()
         with self._lock:
             self._start()

@@ -304,11 +304,10 @@ def _general_fuse(shapes: list[TopoDS_Shape], fuzzy: float, parallel: bool = Tru
     Returns None when OCCT reports failure.
     """
     global _WORKER
-    if timeout_s is not None and _WORKER is not False:
-        if _WORKER is None:
-            _WORKER = FuseWorker()
+    worker = _worker() if timeout_s is not None else None
+    if worker is not None:
         try:
-            return _WORKER.fuse(shapes, fuzzy, parallel, timeout_s)
+            return worker.fuse(shapes, fuzzy, parallel, timeout_s)
         except TimeoutError:  # (an OSError too)
             raise
         except OSError:  # no helper process can run here: fuse in this process from now on
@@ -328,14 +327,21 @@ def start_fuse_worker() -> None:
     """Start the helper process that runs the booleans with a time limit (it takes about a
     second to import OCCT; :meth:`VesselTree.solid` starts it before building the pipes)."""
     global _WORKER
-    if FUSE_TIMEOUT_S is None or _WORKER is False:
+    worker = _worker() if FUSE_TIMEOUT_S is not None else None
+    if worker is None:
         return
-    if _WORKER is None:
-        _WORKER = FuseWorker()
     try:
-        _WORKER.start()
+        worker.start()
     except OSError:
         _WORKER = False
+
+
+def _worker() -> FuseWorker | None:
+    """The helper of the bounded booleans (made on first use), None where it cannot run."""
+    global _WORKER
+    if _WORKER is None:
+        _WORKER = FuseWorker()
+    return _WORKER or None
 
 
 class _History:
