@@ -5,6 +5,8 @@ Prints one table:
 * per-class IoU and mIoU on the fixed held-out phantom test set (120 phantoms
   never trained on x 2 frames = 240 frames, 512 x 512);
 * vessel Dice on the real validation split (10 CIMAT angiograms never trained on);
+* guiding catheters on 8 real flat-panel (ARCADE) images never trained on, drawn by hand
+  (``segmentation_onnx/real_labels``): the share of their pixels labelled catheter and vessel;
 * milliseconds per 512 x 512 frame with onnxruntime on ``--threads`` CPU threads;
 * the same for the int8 models: the bundled ``gated_unet_int8.onnx`` and the plain U-Net
   quantized the same way (``segmentation_onnx.quantize.quantize_int8``, 7-bit weights);
@@ -31,7 +33,12 @@ from pathlib import Path
 import numpy as np
 
 from segmentation_onnx.data import render_test_set
-from segmentation_onnx.evaluate import evaluate_phantom, evaluate_real, time_inference
+from segmentation_onnx.evaluate import (
+    evaluate_phantom,
+    evaluate_real,
+    evaluate_real_catheters,
+    time_inference,
+)
 from vesselcad.segment import bundled_model_path
 
 GOALS = {"iou_vessel": 0.85, "iou_catheter": 0.75, "iou_balloon": 0.80, "dice_mean": 0.80,
@@ -49,7 +56,7 @@ def _write_png(path: Path, rgb: np.ndarray) -> Path:
 
 
 def render_pictures(out: Path, model: Path) -> list[Path]:
-    """Overlays on the real validation images (with the manual mask outlined) and on ARCADE frames."""
+    """Overlays on the real validation images (manual mask outlined) and on held-out ARCADE frames."""
     import cv2
 
     from segmentation_onnx.data import REAL_VAL_IDS, find_real_dir, load_real
@@ -62,7 +69,11 @@ def render_pictures(out: Path, model: Path) -> list[Path]:
     grid = np.vstack([np.hstack(tiles[0:3]), np.hstack(tiles[3:6])])
     paths = []
     paths.append(_write_png(out / "seg_real_validation.png", grid))
-    unl = sorted((find_real_dir() / "unlabelled").glob("arcade_*.png"))[:6]
+    # flat-panel frames whose catheters were drawn for testing and never trained on
+    from segmentation_onnx.catheter_labels import load_polylines
+
+    _, test = load_polylines()
+    unl = [find_real_dir() / "unlabelled" / f"{name}.png" for name in test[:6]]
     if unl:
         tiles = []
         for f in unl:
@@ -103,11 +114,13 @@ def main() -> int:
         for name, path in models.items():
             r = evaluate_phantom(path, frames, labels, threads=a.threads, tta=tta)
             r.update(evaluate_real(path, threads=a.threads, tta=tta))
+            r.update(evaluate_real_catheters(path, threads=a.threads, tta=tta))
             r["ms_per_512_frame"] = time_inference(path, threads=a.threads, tta=tta)
             r["size_mb"] = path.stat().st_size / 1e6
             rows[name + (" + mirror TTA" if tta else "")] = r
     cols = [("iou_vessel", "vessel IoU"), ("iou_catheter", "catheter IoU"), ("iou_balloon", "balloon IoU"),
             ("iou_lead", "lead IoU"), ("miou", "mIoU"), ("dice_mean", "real Dice"),
+            ("cath_recall", "real catheter → catheter"), ("cath_as_vessel", "real catheter → vessel"),
             ("ms_per_512_frame", f"ms/512² ({a.threads} thr)"), ("size_mb", "MB")]
     head = "| model | " + " | ".join(c[1] for c in cols) + " |"
     print(head)

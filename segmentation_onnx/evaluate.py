@@ -6,6 +6,8 @@
 * vessel Dice and IoU on the real validation split (10 CIMAT angiograms,
   :data:`segmentation_onnx.data.REAL_VAL_IDS`, never trained on), per image and
   pooled;
+* guiding catheters on 8 real flat-panel images never trained on (hand-drawn,
+  :mod:`segmentation_onnx.catheter_labels`): share labelled catheter / vessel;
 * inference time per 512 x 512 frame with onnxruntime on a given number of threads.
 
 Needs onnxruntime only (no torch). Example::
@@ -64,6 +66,31 @@ def evaluate_real(model: str | os.PathLike, real_dir: str | os.PathLike | None =
             "iou_mean": float(np.mean(ious)), "dice_per_image": [round(float(d), 4) for d in dices]}
 
 
+def evaluate_real_catheters(model: str | os.PathLike, real_dir: str | os.PathLike | None = None,
+                            threads: int | None = None, tta: bool = False) -> dict[str, float]:
+    """Guiding catheters on the held-out real flat-panel images (hand-drawn, never trained on).
+
+    On the 8 test images of ``real_labels/arcade_catheters.json``
+    (:mod:`segmentation_onnx.catheter_labels`), pooled over their pixels:
+    ``cath_recall`` the share of catheter pixels labelled catheter,
+    ``cath_as_vessel`` the share labelled vessel, ``cath_iou`` the catheter IoU over
+    the labelled pixels (catheter, vessel and background of the targets), and
+    ``vessel_kept`` the share of the target's vessel pixels (the tree the catheter
+    feeds, as the round-7 model drew it) still labelled vessel.
+    """
+    from .catheter_labels import load_targets
+
+    imgs, tgts, _ = load_targets(real_dir=real_dir, split="test")
+    seg = Segmenter(model, threads=threads, tta=tta)
+    pred = seg(np.stack(imgs))
+    t = np.stack(tgts)
+    cath, ves, known = t == 2, t == 1, t <= 4
+    pc = (pred == 2) & known
+    return {"cath_recall": float((pred[cath] == 2).mean()), "cath_as_vessel": float((pred[cath] == 1).mean()),
+            "cath_iou": float((pc & cath).sum() / max((pc | cath).sum(), 1)),
+            "vessel_kept": float((pred[ves] == 1).mean())}
+
+
 def time_inference(model: str | os.PathLike, threads: int = 2, size: int = 512,
                    repeats: int = 10, tta: bool = False) -> float:
     """Median milliseconds per ``size`` x ``size`` frame (one frame per call, after a warm-up)."""
@@ -96,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     for m in a.models:
         r = evaluate_phantom(m, frames, labels, threads=a.threads, tta=a.tta)
         r.update(evaluate_real(m, a.real_dir, threads=a.threads, tta=a.tta))
+        r.update(evaluate_real_catheters(m, a.real_dir, threads=a.threads, tta=a.tta))
         r["ms_per_512_frame"] = time_inference(m, threads=a.threads, tta=a.tta)
         rows[Path(m).name] = r
         shown = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}

@@ -151,8 +151,12 @@ class BatchAugmenter:
 
     def __init__(self, pool: Pool, real_images: list[np.ndarray], real_masks: list[np.ndarray], *,
                  crop: int = 256, real_fraction: float = 0.35, device: torch.device | str = "cpu",
-                 seed: int = 0, augment: bool = True, focus_fraction: float = 0.0):
+                 seed: int = 0, augment: bool = True, focus_fraction: float = 0.0,
+                 labelled_images: list[np.ndarray] | None = None,
+                 labelled_targets: list[np.ndarray] | None = None, labelled_fraction: float = 0.0):
         dev = torch.device(device)
+        if not 0.0 <= labelled_fraction <= 1.0:
+            raise ValueError(f"labelled_fraction must lie in [0, 1], got {labelled_fraction}")
         if not 0.0 <= focus_fraction <= 1.0:
             raise ValueError(f"focus_fraction must lie in [0, 1], got {focus_fraction}")
         self.focus_fraction = float(focus_fraction)
@@ -170,6 +174,13 @@ class BatchAugmenter:
             self.real_mask = torch.from_numpy(np.stack(real_masks).astype(bool)).to(dev)
         else:
             self.real = self.real_mask = None
+        if labelled_images:
+            self.lab_real = torch.from_numpy(np.stack(labelled_images).astype(np.uint8)).to(dev)
+            self.lab_target = torch.from_numpy(np.stack(labelled_targets).astype(np.uint8)).to(dev)
+            self.labelled_fraction = float(labelled_fraction)
+        else:
+            self.lab_real = self.lab_target = None
+            self.labelled_fraction = 0.0
         self.gen = torch.Generator(device=dev)
         self.gen.manual_seed(int(seed))
 
@@ -256,9 +267,14 @@ class BatchAugmenter:
 
     def batch(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``n`` augmented crops: images (n, 1, crop, crop) float32, targets (n, crop, crop) int64."""
-        n_real = int((self._u(n) < self.real_fraction).sum()) if self.real is not None else 0
+        has_real = self.real is not None or self.lab_real is not None
+        n_real = int((self._u(n) < self.real_fraction).sum()) if has_real else 0
+        n_lab = int((self._u(n_real) < self.labelled_fraction).sum()) if self.lab_real is not None else 0
+        if self.real is None:
+            n_lab = n_real
         xs, ts = [], []
         n_ph = n - n_real
+        n_real -= n_lab
         if n_ph:
             k = torch.randint(len(self.frames), (n_ph,), device=self.device, generator=self.gen)
             lab = self.labels[k].long()
@@ -275,6 +291,15 @@ class BatchAugmenter:
             if self.augment:
                 x = self._photometric(x, None)
             xi, ti = self._crops(normalize(x), tgt)
+            xs.append(xi)
+            ts.append(ti)
+        if n_lab:
+            # real images with partial full-class targets (catheters drawn by hand, IGNORE elsewhere)
+            k = torch.randint(len(self.lab_real), (n_lab,), device=self.device, generator=self.gen)
+            x = self.lab_real[k].float()[:, None] / 255.0
+            if self.augment:
+                x = self._photometric(x, None)
+            xi, ti = self._crops(normalize(x), self.lab_target[k].long())
             xs.append(xi)
             ts.append(ti)
         return torch.cat(xs), torch.cat(ts)

@@ -125,6 +125,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pool-phantoms", type=int, default=200, help="phantoms to render when --pool is absent")
     ap.add_argument("--real-dir", help="xca-real folder (default: see data.find_real_dir)")
     ap.add_argument("--no-real", action="store_true", help="phantom only")
+    ap.add_argument("--catheter-labels", nargs="?", const="default", default=None,
+                    help="also train on the real flat-panel images with hand-drawn catheters "
+                    "(segmentation_onnx/real_labels/arcade_catheters.npz, or this file); their test "
+                    "images are kept out")
+    ap.add_argument("--labelled-fraction", type=float, default=0.5,
+                    help="with --catheter-labels: share of the real crops drawn from them")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     ap.add_argument("--workers", type=int, default=None, help="processes rendering the pool (default: all)")
@@ -199,13 +205,23 @@ def main(argv: list[str] | None = None) -> int:
     real_imgs, real_masks = ([], []) if a.no_real else load_real(real_train_ids, a.real_dir)
     real_val = load_real(REAL_VAL_IDS, a.real_dir)
 
+    lab_imgs, lab_tgts, lab_names = [], [], []
+    if a.catheter_labels:
+        from .catheter_labels import TARGETS, load_targets
+
+        path = TARGETS if a.catheter_labels == "default" else a.catheter_labels
+        lab_imgs, lab_tgts, lab_names = load_targets(path, a.real_dir, split="train")
+
     # batches are drawn and augmented on the training device; a resumed run reseeds from its step
     aug = BatchAugmenter(pool, real_imgs, real_masks, crop=a.crop, real_fraction=a.real_fraction,
-                         focus_fraction=a.focus_fraction, device=device, seed=a.seed * 1_000_003 + step)
+                         focus_fraction=a.focus_fraction, device=device, seed=a.seed * 1_000_003 + step,
+                         labelled_images=lab_imgs, labelled_targets=lab_tgts,
+                         labelled_fraction=a.labelled_fraction)
     (out / "config.json").write_text(json.dumps({**vars(a), "widths": widths, "device": str(device),
                                                  "pool_frames": len(pool.frames), "revived": revived,
                                                  "real_train_ids": real_train_ids,
-                                                 "real_val_ids": list(REAL_VAL_IDS)}, indent=1))
+                                                 "real_val_ids": list(REAL_VAL_IDS),
+                                                 "catheter_labelled_train": lab_names}, indent=1))
     log_path = out / "log.csv"
     new_log = not log_path.exists() or step == 0
     logf = open(log_path, "w" if new_log else "a", newline="")

@@ -369,6 +369,46 @@ def test_training_batches(phantom_frames):
         assert (ti[k].numpy() == labels[0][cy:cy + 64, cx:cx + 64]).all()
 
 
+def test_training_batches_with_hand_labelled_real_images(phantom_frames):
+    torch = pytest.importorskip("torch")
+    from segmentation_onnx.data import IGNORE, NOT_VESSEL, Pool
+    from segmentation_onnx.torch_aug import BatchAugmenter
+    from segmentation_onnx.train import seg_loss
+
+    frames, labels = phantom_frames
+    pool = Pool(list(frames), list(labels), [8] * len(frames))
+    real = [cv2.imread(str(REAL / f"{i}.png"), cv2.IMREAD_GRAYSCALE) for i in REAL_IDS[:2]]
+    masks = [cv2.imread(str(REAL / f"{i}_gt.png"), cv2.IMREAD_GRAYSCALE) > 127 for i in REAL_IDS[:2]]
+    # a 'catheter' drawn on a real image: a band labelled 2, background 0 elsewhere, a ring unlabelled
+    target = np.zeros((96, 96), np.uint8)
+    target[:, 40:60] = IGNORE
+    target[:, 46:54] = 2
+    image = np.full((96, 96), 180, np.uint8)
+    image[:, 46:54] = 60
+    aug = BatchAugmenter(pool, real, masks, crop=64, real_fraction=1.0, seed=2,
+                         labelled_images=[image], labelled_targets=[target], labelled_fraction=0.5)
+    x, t = aug.batch(16)
+    values = set(torch.unique(t).tolist())
+    assert values <= {0, 1, 2, NOT_VESSEL, IGNORE} and {2, IGNORE} <= values
+    labelled = (t == IGNORE).flatten(1).any(1) | (t == 2).flatten(1).any(1)
+    from_cimat = (t == NOT_VESSEL).flatten(1).any(1)
+    assert 0 < int(labelled.sum()) < 16 and not bool((labelled & from_cimat).any())
+    # the drawn catheter is dark in the crops too (the warp keeps images and targets together)
+    for k in np.nonzero(labelled.numpy())[0]:
+        xi, ti = x[k, 0], t[k]
+        if (ti == 2).sum() > 20 and (ti == 0).sum() > 20:
+            assert float(xi[ti == 2].mean()) < float(xi[ti == 0].mean())
+    # no loss at all from unlabelled pixels, whatever the network says there
+    logits = torch.randn(1, 5, 4, 4)
+    tgt = torch.full((1, 4, 4), IGNORE)
+    tgt[0, 0, 0] = 2
+    other = logits.clone()
+    other[:, :, 1:] = torch.randn(1, 5, 3, 4) * 10
+    assert abs(float(seg_loss(logits, tgt)) - float(seg_loss(other, tgt))) < 1e-6
+    with pytest.raises(ValueError, match="labelled_fraction"):
+        BatchAugmenter(pool, [], [], labelled_fraction=2.0)
+
+
 def test_focus_crops():
     """Catheter pixels within 12 px of a vessel and balloons are focus pixels; focused crops show them."""
     torch = pytest.importorskip("torch")

@@ -1,0 +1,68 @@
+"""Hand-drawn catheters turned into partial training targets (segmentation_onnx.catheter_labels)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from segmentation_onnx.catheter_labels import TARGETS, TIP_RADIUS, load_polylines, load_targets, make_target
+from segmentation_onnx.data import IGNORE, find_real_dir
+
+
+def _scene() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A catheter (half width 3 px) entering at the top and feeding a vessel that runs down-right.
+
+    The 'model' calls both vessel, as the round-7 model did on real images."""
+    h = w = 160
+    yy, xx = np.mgrid[:h, :w]
+    catheter = (np.abs(xx - 40) <= 3) & (yy <= 70)
+    t = np.clip((xx - 40) / 70.0, 0, 1)  # vessel from (40, 70) to (110, 140)
+    vessel = (np.hypot(xx - (40 + 70 * t), yy - (70 + 70 * t)) <= 2.5) & (yy >= 70)
+    image = np.full((h, w), 200, np.uint8)
+    image[catheter] = 70
+    image[vessel] = 80
+    proba = np.zeros((5, h, w), np.float32)
+    fg = catheter | vessel
+    proba[1][fg] = 0.97
+    proba[0][~fg] = 0.97
+    proba[0][fg] = 0.03
+    proba[1][~fg] = 0.03
+    return image, proba, catheter, vessel
+
+
+def test_drawn_catheter_becomes_catheter_and_the_fed_tree_vessel():
+    image, proba, catheter, vessel = _scene()
+    polyline = np.array([(43, 1), (38, 35), (41, 69)])  # drawn a few px off the tube
+    t = make_target(image, proba, polyline)
+    yy, _ = np.mgrid[:image.shape[0], :image.shape[1]]
+    shaft = catheter & (yy > 12) & (yy < 70 - TIP_RADIUS)  # away from the border and the tip
+    assert (t[shaft] == 2).mean() > 0.95
+    assert not np.any((t == 2) & ~catheter & (yy > 12))  # nothing beside the tube is catheter
+    far = vessel & (yy > 100)
+    assert (t[far] == 1).mean() > 0.95  # the tree the catheter feeds stays vessel
+    assert not np.any((t == 2) & vessel & (yy > 70 + TIP_RADIUS))
+    assert np.all(t[(np.hypot(*np.mgrid[:160, :160][::-1] - np.array([41, 69])[:, None, None]) <= TIP_RADIUS)
+                    & ~catheter] == IGNORE)  # where catheter turns into vessel: no label
+    bg = (~catheter & ~vessel)
+    assert (t[bg] == 0).mean() > 0.8 and set(np.unique(t)) <= {0, 1, 2, IGNORE}
+
+
+def test_shipped_targets_split_and_hold_catheters():
+    try:
+        find_real_dir()
+    except FileNotFoundError:
+        pytest.skip("shared real data (xca-real) not found")
+    lines, test = load_polylines()
+    tr_i, tr_t, tr_n = load_targets(TARGETS, split="train")
+    te_i, te_t, te_n = load_targets(TARGETS, split="test")
+    assert sorted(te_n) == sorted(test) and not set(tr_n) & set(te_n)
+    assert len(tr_n) + len(te_n) == len(lines) >= 40
+    for im, t in zip(tr_i + te_i, tr_t + te_t, strict=True):
+        assert im.shape == t.shape
+        cath = t == 2
+        assert cath.sum() > 300
+        ring = ndi.binary_dilation(cath, iterations=8) & ~ndi.binary_dilation(cath, iterations=3)
+        assert im[cath].mean() < im[ring].mean() - 5  # on a dark tube, not beside it
+    with pytest.raises(ValueError, match="split"):
+        load_targets(TARGETS, split="val")
