@@ -144,11 +144,12 @@ def load_targets(path: str | Path = TARGETS, real_dir: str | Path | None = None,
                  ) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
     """Images (uint8, from ``xca-real/unlabelled``) and targets of the catheter-labelled set.
 
-    ``split`` is ``"train"`` (the images not named in the JSON's ``test``), ``"test"`` or ``"all"``.
+    ``split`` is ``"train"`` (the images not named in the ``test`` list of the JSON file beside
+    ``path``), ``"test"`` or ``"all"``.
     """
     if split not in ("train", "test", "all"):
         raise ValueError(f"split must be 'train', 'test' or 'all', got {split!r}")
-    _, test = load_polylines()
+    _, test = load_polylines(Path(path).with_suffix(".json"))  # the polylines lie beside the targets
     d = find_real_dir(real_dir) / "unlabelled"
     imgs, tgts, names = [], [], []
     with np.load(path) as z:
