@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from vesselcad.io.atomic import atomic_path
+from vesselcad.io.atomic import atomic_path, atomic_write_text
 
 from .data import IGNORE, find_real_dir
 
@@ -169,12 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default=None, help="labelling model (default: the shipped fp32 file)")
     ap.add_argument("--real-dir", help="xca-real folder (default: see data.find_real_dir)")
-    ap.add_argument("--out", default=str(TARGETS))
+    ap.add_argument("--polylines", default=str(POLYLINES), help="JSON of the drawn catheters")
+    ap.add_argument("--out", default=str(TARGETS), help="targets (.npz); the JSON is copied beside it")
     a = ap.parse_args(argv)
     import vesselcad as vc
 
     seg = vc.Segmenter(a.model, threads=2)
-    lines, _ = load_polylines()
+    lines, _ = load_polylines(a.polylines)
     d = find_real_dir(a.real_dir) / "unlabelled"
     out = {}
     for name, poly in lines.items():
@@ -185,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
         out[name] = make_target(im, p[0], poly)
     with atomic_path(a.out) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **out)
+    beside = Path(a.out).with_suffix(".json")
+    if beside.resolve() != Path(a.polylines).resolve():
+        atomic_write_text(beside, Path(a.polylines).read_text())
     print(f"{len(out)} targets -> {a.out}")
     return 0
 
