@@ -67,11 +67,12 @@ def load_polylines(path: str | Path = POLYLINES) -> tuple[dict[str, np.ndarray],
     return lines, list(doc["test"])
 
 
-def snap(image: np.ndarray, fg_proba: np.ndarray, polyline: np.ndarray, *, return_ridge: bool = False
-         ) -> tuple:
-    """The polyline snapped to the dark tube: path pixels (n, 2) row, col, and the tube's half width (px).
+def snap(image: np.ndarray, fg_proba: np.ndarray, polyline: np.ndarray
+         ) -> tuple[np.ndarray, float, np.ndarray]:
+    """The polyline snapped to the dark tube.
 
-    With ``return_ridge`` also the ridge filter's response (0..1) over the image.
+    Returns the path pixels (n, 2) row, col, the tube's half width (px) and the ridge
+    filter's response (0..1) over the image.
     """
     from skimage.filters import sato
     from skimage.graph import route_through_array
@@ -90,7 +91,7 @@ def snap(image: np.ndarray, fg_proba: np.ndarray, polyline: np.ndarray, *, retur
     on = np.zeros(im.shape, bool)
     on[rc[:, 0], rc[:, 1]] = True
     half = float(np.clip(np.median(ndi.distance_transform_edt(tube)[on]) + 1.0, 2.0, 7.0))
-    return (rc, half, ridge) if return_ridge else (rc, half)
+    return rc, half, ridge
 
 
 def make_target(image: np.ndarray, proba: np.ndarray, polyline: np.ndarray) -> np.ndarray:
@@ -105,7 +106,7 @@ def make_target(image: np.ndarray, proba: np.ndarray, polyline: np.ndarray) -> n
         The catheter, x, y px, from the image edge to its tip.
     """
     fg = proba[1] + proba[2]
-    rc, half, ridge = snap(image, fg, polyline, return_ridge=True)
+    rc, half, ridge = snap(image, fg, polyline)
     on = np.zeros(image.shape, bool)
     on[rc[:, 0], rc[:, 1]] = True
     d_path = ndi.distance_transform_edt(~on)

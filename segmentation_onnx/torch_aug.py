@@ -284,22 +284,19 @@ class BatchAugmenter:
             xi, ti = self._crops(normalize(x), lab, None if self.focus is None else self.focus[k])
             xs.append(xi)
             ts.append(ti)
-        if n_real:
-            k = torch.randint(len(self.real), (n_real,), device=self.device, generator=self.gen)
-            x = self.real[k].float()[:, None] / 255.0
-            tgt = torch.where(self.real_mask[k], 1, NOT_VESSEL).long()
-            if self.augment:
-                x = self._photometric(x, None)
-            xi, ti = self._crops(normalize(x), tgt)
-            xs.append(xi)
-            ts.append(ti)
-        if n_lab:
-            # real images with partial full-class targets (catheters drawn by hand, IGNORE elsewhere)
-            k = torch.randint(len(self.lab_real), (n_lab,), device=self.device, generator=self.gen)
-            x = self.lab_real[k].float()[:, None] / 255.0
-            if self.augment:
-                x = self._photometric(x, None)
-            xi, ti = self._crops(normalize(x), self.lab_target[k].long())
-            xs.append(xi)
-            ts.append(ti)
+        if n_real:  # vessel masks: vessel / not vessel
+            self._real_crops(self.real, lambda k: torch.where(self.real_mask[k], 1, NOT_VESSEL),
+                             n_real, xs, ts)
+        if n_lab:  # partial full-class targets (catheters drawn by hand, IGNORE elsewhere)
+            self._real_crops(self.lab_real, lambda k: self.lab_target[k], n_lab, xs, ts)
         return torch.cat(xs), torch.cat(ts)
+
+    def _real_crops(self, images: torch.Tensor, targets, n: int, xs: list, ts: list) -> None:
+        """Append ``n`` augmented crops of randomly drawn real 8-bit ``images`` (targets: ``targets(k)``)."""
+        k = torch.randint(len(images), (n,), device=self.device, generator=self.gen)
+        x = images[k].float()[:, None] / 255.0
+        if self.augment:
+            x = self._photometric(x, None)
+        xi, ti = self._crops(normalize(x), targets(k).long())
+        xs.append(xi)
+        ts.append(ti)
