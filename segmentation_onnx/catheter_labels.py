@@ -26,11 +26,14 @@ filter), widened to the tube's half width, and turned into a target map:
   whatever the model is unsure of.
 
 The file ``real_labels/arcade_catheters.npz`` holds the targets (uint8, one
-per image) made with the round-7 fp32 model; the images stay in
-``../shared/data`` (their licence asks attribution, see its README).
+per image) made with the round-7 fp32 model (shipped until round 11 took its
+place); the images stay in ``../shared/data`` (their licence asks attribution,
+see its README).
 
-Run ``python -m segmentation_onnx.catheter_labels`` to make it again (needs
-the shared data; no torch).
+Run ``python -m segmentation_onnx.catheter_labels --model r7.onnx`` with that
+file (``git show 7ebd024:segmentation_onnx/gated_unet.onnx > r7.onnx``) to
+make the same targets again (checked identical); without ``--model`` the
+shipped file labels them (needs the shared data; no torch).
 """
 
 from __future__ import annotations
