@@ -6,7 +6,9 @@ Prints one table:
   never trained on x 2 frames = 240 frames, 512 x 512);
 * vessel Dice on the real validation split (10 CIMAT angiograms never trained on);
 * guiding catheters on 8 real flat-panel (ARCADE) images never trained on, drawn by hand
-  (``segmentation_onnx/real_labels``): the share of their pixels labelled catheter and vessel;
+  (``segmentation_onnx/real_labels``): the share of their pixels labelled catheter and vessel,
+  and the share of those images where the catheter tip that motion phase matching takes from
+  the labels is found at all and within 20 px of the drawn tip;
 * milliseconds per 512 x 512 frame with onnxruntime on ``--threads`` CPU threads;
 * the same for the int8 models: the bundled ``gated_unet_int8.onnx`` and the plain U-Net
   quantized the same way (``segmentation_onnx.quantize.quantize_int8``, 7-bit weights);
@@ -121,6 +123,7 @@ def main() -> int:
     cols = [("iou_vessel", "vessel IoU"), ("iou_catheter", "catheter IoU"), ("iou_balloon", "balloon IoU"),
             ("iou_lead", "lead IoU"), ("miou", "mIoU"), ("dice_mean", "real Dice"),
             ("cath_recall", "real catheter → catheter"), ("cath_as_vessel", "real catheter → vessel"),
+            ("tip_found", "real tip found"), ("tip_near", "real tip ≤ 20 px"),
             ("ms_per_512_frame", f"ms/512² ({a.threads} thr)"), ("size_mb", "MB")]
     head = "| model | " + " | ".join(c[1] for c in cols) + " |"
     print(head)

@@ -66,6 +66,21 @@ def evaluate_real(model: str | os.PathLike, real_dir: str | os.PathLike | None =
             "iou_mean": float(np.mean(ious)), "dice_per_image": [round(float(d), 4) for d in dices]}
 
 
+#: A catheter tip found within this distance (px) of the drawn one counts as found there: the
+#: drawn tips were read by eye (about 10 px) and the targets leave 12 px around them unlabelled.
+TIP_TOLERANCE_PX = 20.0
+
+
+def catheter_tip_errors(labels: np.ndarray, tips_xy: np.ndarray) -> np.ndarray:
+    """Distance (px) from the catheter tip that motion phase matching finds in each label map
+    (:func:`vesselcad.phase.find_keypoints`, class 2) to the given true tip ``(x, y)``; NaN where
+    it finds none."""
+    from vesselcad.phase import find_keypoints
+
+    found = find_keypoints(labels, "catheter").points_px
+    return np.hypot(*(found - np.asarray(tips_xy, float)).T)
+
+
 def evaluate_real_catheters(model: str | os.PathLike, real_dir: str | os.PathLike | None = None,
                             threads: int | None = None, tta: bool = False) -> dict[str, float]:
     """Guiding catheters on the held-out real flat-panel images (hand-drawn, never trained on).
@@ -76,19 +91,28 @@ def evaluate_real_catheters(model: str | os.PathLike, real_dir: str | os.PathLik
     ``cath_as_vessel`` the share labelled vessel, ``cath_iou`` the catheter IoU over
     the labelled pixels (catheter, vessel and background of the targets), and
     ``vessel_kept`` the share of the target's vessel pixels (the tree the catheter
-    feeds, as the round-7 model drew it) still labelled vessel.
+    feeds, as the round-7 model drew it) still labelled vessel. Per image, the tip that
+    motion phase matching would take from the labels: ``tip_found`` the share of images
+    where it finds one, ``tip_near`` the share where it lies within
+    :data:`TIP_TOLERANCE_PX` of the drawn tip, ``tip_median_px`` the median distance of
+    those found (NaN if none).
     """
-    from .catheter_labels import load_targets
+    from .catheter_labels import load_polylines, load_targets
 
-    imgs, tgts, _ = load_targets(real_dir=real_dir, split="test")
+    imgs, tgts, names = load_targets(real_dir=real_dir, split="test")
+    lines, _ = load_polylines()
     seg = Segmenter(model, threads=threads, tta=tta)
     pred = seg(np.stack(imgs))
     t = np.stack(tgts)
     cath, ves, known = t == 2, t == 1, t <= 4
     pc = (pred == 2) & known
+    d = catheter_tip_errors(pred, np.array([lines[n][-1] for n in names], float))
+    ok = np.isfinite(d)
     return {"cath_recall": float((pred[cath] == 2).mean()), "cath_as_vessel": float((pred[cath] == 1).mean()),
             "cath_iou": float((pc & cath).sum() / max((pc | cath).sum(), 1)),
-            "vessel_kept": float((pred[ves] == 1).mean())}
+            "vessel_kept": float((pred[ves] == 1).mean()),
+            "tip_found": float(ok.mean()), "tip_near": float((d[ok] <= TIP_TOLERANCE_PX).sum() / len(d)),
+            "tip_median_px": float(np.median(d[ok])) if ok.any() else float("nan")}
 
 
 def time_inference(model: str | os.PathLike, threads: int = 2, size: int = 512,

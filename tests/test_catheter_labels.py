@@ -69,3 +69,21 @@ def test_shipped_targets_split_and_hold_catheters():
         assert im[cath].mean() < im[ring].mean() - 5  # on a dark tube, not beside it
     with pytest.raises(ValueError, match="split"):
         load_targets(TARGETS, real, split="val")
+
+
+def test_catheter_tip_error_against_a_known_tip():
+    """The tip phase matching takes from labels, measured against the true tip (x, y)."""
+    from segmentation_onnx.evaluate import catheter_tip_errors
+
+    lab = np.zeros((3, 96, 96), np.uint8)
+    lab[0, :61, 29:32] = 2            # catheter from the top edge down to row 60, column 30
+    lab[0, 60:90, 30:33] = 1          # the vessel it feeds goes on
+    lab[1, 20:70, 40:43] = 1          # no catheter at all
+    lab[2, 35, 5:41] = 2              # from the left edge to column 40: tip (40, 35)
+    lab[2, 34:37, 5:41] = 2
+    d = catheter_tip_errors(lab, np.array([[30.0, 60.0], [50.0, 50.0], [40.0, 35.0]]))
+    assert d[0] < 2.0 and d[2] < 2.0
+    assert np.isnan(d[1])
+    # the same labels against a tip 25 px further on: the distance says so
+    d2 = catheter_tip_errors(lab[:1], np.array([[30.0, 85.0]]))
+    assert 23.0 < d2[0] < 27.0
