@@ -36,6 +36,7 @@ import numpy as np
 
 from segmentation_onnx.data import render_test_set
 from segmentation_onnx.evaluate import (
+    TIP_TOLERANCE_PX,
     evaluate_phantom,
     evaluate_real,
     evaluate_real_catheters,
@@ -123,7 +124,7 @@ def main() -> int:
     cols = [("iou_vessel", "vessel IoU"), ("iou_catheter", "catheter IoU"), ("iou_balloon", "balloon IoU"),
             ("iou_lead", "lead IoU"), ("miou", "mIoU"), ("dice_mean", "real Dice"),
             ("cath_recall", "real catheter → catheter"), ("cath_as_vessel", "real catheter → vessel"),
-            ("tip_found", "real tip found"), ("tip_near", "real tip ≤ 20 px"),
+            ("tip_found", "real tip found"), ("tip_near", f"real tip ≤ {TIP_TOLERANCE_PX:.0f} px"),
             ("ms_per_512_frame", f"ms/512² ({a.threads} thr)"), ("size_mb", "MB")]
     head = "| model | " + " | ".join(c[1] for c in cols) + " |"
     print(head)
