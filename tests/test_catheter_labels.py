@@ -79,8 +79,7 @@ def test_catheter_tip_error_against_a_known_tip():
     lab[0, :61, 29:32] = 2            # catheter from the top edge down to row 60, column 30
     lab[0, 60:90, 30:33] = 1          # the vessel it feeds goes on
     lab[1, 20:70, 40:43] = 1          # no catheter at all
-    lab[2, 35, 5:41] = 2              # from the left edge to column 40: tip (40, 35)
-    lab[2, 34:37, 5:41] = 2
+    lab[2, 34:37, :41] = 2            # from the left edge to column 40: tip (40, 35)
     d = catheter_tip_errors(lab, np.array([[30.0, 60.0], [50.0, 50.0], [40.0, 35.0]]))
     assert d[0] < 2.0 and d[2] < 2.0
     assert np.isnan(d[1])
