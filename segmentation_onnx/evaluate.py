@@ -71,13 +71,15 @@ def evaluate_real(model: str | os.PathLike, real_dir: str | os.PathLike | None =
 TIP_TOLERANCE_PX = 20.0
 
 
-def catheter_tip_errors(labels: np.ndarray, tips_xy: np.ndarray) -> np.ndarray:
+def catheter_tip_errors(labels: np.ndarray, tips_xy: np.ndarray, frames: np.ndarray | None = None
+                        ) -> np.ndarray:
     """Distance (px) from the catheter tip that motion phase matching finds in each label map
-    (:func:`vesselcad.phase.find_keypoints`, class 2) to the given true tip ``(x, y)``; NaN where
-    it finds none."""
+    (:func:`vesselcad.phase.find_keypoints`, class 2, given the grey ``frames`` as
+    ``match_phase`` gives them: a catheter enters at the inner edge of a dark image border) to
+    the given true tip ``(x, y)``; NaN where it finds none."""
     from vesselcad.phase import find_keypoints
 
-    found = find_keypoints(labels, "catheter").points_px
+    found = find_keypoints(labels, "catheter", frames=frames).points_px
     return np.hypot(*(found - np.asarray(tips_xy, float)).T)
 
 
@@ -106,7 +108,7 @@ def evaluate_real_catheters(model: str | os.PathLike, real_dir: str | os.PathLik
     t = np.stack(tgts)
     cath, ves, known = t == 2, t == 1, t <= 4
     pc = (pred == 2) & known
-    d = catheter_tip_errors(pred, np.array([lines[n][-1] for n in names], float))
+    d = catheter_tip_errors(pred, np.array([lines[n][-1] for n in names], float), np.stack(imgs))
     ok = np.isfinite(d)
     return {"cath_recall": float((pred[cath] == 2).mean()), "cath_as_vessel": float((pred[cath] == 1).mean()),
             "cath_iou": float((pc & cath).sum() / max((pc | cath).sum(), 1)),

@@ -11,6 +11,7 @@ from vesselcad.phase import (
     epipolar_consistency,
     error_matrix,
     find_keypoints,
+    image_margins,
     match_phase,
     plot_error_matrix,
 )
@@ -96,6 +97,48 @@ def test_catheter_whose_filled_shaft_is_taken_for_vessel_keeps_its_tip():
     lab[0][(lab[0] == v) & (np.arange(256)[None, :] > 50) & (np.arange(256)[None, :] < 75)] = 0
     lab[0, :, 58:63] = c
     assert np.isnan(find_keypoints(lab, "catheter").points_px[0]).all()
+
+
+def _bordered_frame(top: int, bottom: int, left: int, right: int, seed: int = 0) -> np.ndarray:
+    """256² grey frame (background ~150, noise, dark vessels reaching the edges) inside a black
+    export border of the given widths, each followed by a 2 px ramp brighter than half the field."""
+    rng = np.random.default_rng(seed)
+    f = 150.0 + 8.0 * rng.standard_normal((256, 256))
+    cv2.line(f, (0, 40), (255, 90), 60.0, 7)  # contrast-filled vessels crossing the field
+    cv2.line(f, (200, 0), (170, 255), 60.0, 9)
+    for w, band, ramp in ((top, np.s_[:top], np.s_[top:top + 2]),
+                          (bottom, np.s_[256 - bottom:], np.s_[254 - bottom:256 - bottom]),
+                          (left, np.s_[:, :left], np.s_[:, left:left + 2]),
+                          (right, np.s_[:, 256 - right:], np.s_[:, 254 - right:256 - right])):
+        if w:
+            f[ramp] = 90.0
+            f[band] = 2.0
+    return np.clip(f, 0, 255).astype(np.uint8)
+
+
+def test_image_margins_of_a_black_export_border(sync_cs):
+    frames = np.stack([_bordered_frame(10, 0, 14, 6), _bordered_frame(0, 7, 0, 0, seed=1)])
+    np.testing.assert_array_equal(image_margins(frames), [[10, 0, 14, 6], [0, 7, 0, 0]])
+    # Vessels reaching the edge, dark anatomy and the phantom's vignette are no border.
+    case, _, _ = sync_cs
+    assert not image_margins(case.run_a.frames).any()
+    with pytest.raises(vc.ArgumentError, match="frames"):
+        image_margins(np.zeros((2, 4, 4)))
+
+
+def test_catheter_entering_through_a_black_border_has_its_tip():
+    # An exported cine with a 12 px black frame: the catheter's labels start below it, 14 px
+    # from the array's edge. From the labels alone no end lies at the edge ('ambiguous'); with
+    # the frames its entry is at the border's inner edge and the tip is found.
+    lab = _catheter_frame()
+    lab[0, :14] = 0
+    track = find_keypoints(lab, "catheter")
+    assert np.isnan(track.points_px[0]).all() and track.reason[0] == "ambiguous"
+    frames = _bordered_frame(12, 12, 12, 12)[None]
+    tip = find_keypoints(lab, "catheter", frames=frames).points_px[0]
+    assert np.linalg.norm(tip - [128.0, 197.5]) < 2.0
+    with pytest.raises(vc.ArgumentError, match="frames"):
+        find_keypoints(lab, "catheter", frames=frames[:, :128])
 
 
 def test_lead_crossing_the_catheter_keeps_its_tip():

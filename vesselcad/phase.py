@@ -33,6 +33,7 @@ __all__ = [
     "KeyPointTrack",
     "OBJECTS",
     "find_keypoints",
+    "image_margins",
     "error_matrix",
     "diagonal_mean",
     "epipolar_consistency",
@@ -183,6 +184,59 @@ def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
     return ndimage.label(mask, structure=_IN_PLANE)
 
 
+#: A margin row or column is darker than this share of the frame's central median ...
+MARGIN_DARK = 0.5
+#: ... and the outermost one darker than this share (a black frame, not dark anatomy at the edge).
+MARGIN_EDGE_DARK = 0.2
+#: Margins are looked for within this share of the frame's height or width from each edge.
+MARGIN_MAX_SHARE = 0.15
+
+
+def image_margins(frames: Any) -> np.ndarray:
+    """Widths of the dark borders of each frame: export frames, shutters, collimator blades.
+
+    Exported cines often carry a black frame of 5-15 px, and a collimated or
+    shuttered field ends in a dark band; a device enters the image at the
+    inner edge of that band, not at the array's edge. Per frame and side, the
+    margin is the run of rows (columns) from the edge whose mean over the
+    middle 60 % of the side is darker than :data:`MARGIN_DARK` times the
+    median of the frame's central half, at most :data:`MARGIN_MAX_SHARE` of
+    the frame, where the outermost is darker than :data:`MARGIN_EDGE_DARK`
+    times that median (dark anatomy reaching the edge is no margin). A
+    circular intensifier field gives the rows and columns where the circle
+    covers less than the middle of the side (on the real 12-frame XA cine
+    12-13 / 76 / 55-75 / 60 px: more than the circle leaves at mid-height).
+    Frames without a dark border (the phantom's) give zeros.
+
+    Parameters
+    ----------
+    frames : array_like, shape (N, H, W) or (H, W)
+        Grey frames, any numeric dtype (dark = low values, as stored for display).
+
+    Returns
+    -------
+    numpy.ndarray, shape (N, 4), int
+        ``(top, bottom, left, right)`` margin widths in px.
+    """
+    f = np.asarray(frames)
+    if f.ndim == 2:
+        f = f[None]
+    if f.ndim != 3 or f.shape[0] == 0 or not np.issubdtype(f.dtype, np.number) or min(f.shape[1:]) < 8:
+        raise ArgumentError(f"frames: expected grey frames of shape (N, H, W), got {f.dtype} {f.shape}")
+    n, h, w = f.shape
+    ref = np.median(f[:, h // 4: h - h // 4, w // 4: w - w // 4].reshape(n, -1), axis=1).astype(float)
+    c0, c1, r0, r1 = w // 5, w - w // 5, h // 5, h - h // 5
+    kh, kw = max(int(MARGIN_MAX_SHARE * h), 1), max(int(MARGIN_MAX_SHARE * w), 1)
+    flip = f[:, ::-1, ::-1]
+    profiles = (f[:, :kh, c0:c1].mean(axis=2, dtype=float), flip[:, :kh, c0:c1].mean(axis=2, dtype=float),
+                f[:, r0:r1, :kw].mean(axis=1, dtype=float), flip[:, r0:r1, :kw].mean(axis=1, dtype=float))
+    out = np.zeros((n, 4), int)
+    for k, prof in enumerate(profiles):  # four sides
+        dark = prof < MARGIN_DARK * ref[:, None]
+        out[:, k] = np.where(prof[:, 0] < MARGIN_EDGE_DARK * ref, np.cumprod(dark, axis=1).sum(axis=1), 0)
+    return out
+
+
 def _balloon_centres(labels: np.ndarray, min_area_px: int) -> tuple[np.ndarray, list[str]]:
     """Centroid of the largest balloon component per frame (all frames at once)."""
     n = labels.shape[0]
@@ -231,13 +285,15 @@ _JOIN_RADII = 4.0  # device radii
 _MAX_OFF_SHARE = 0.5
 
 
-def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tuple[np.ndarray | None, str]:
+def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int,
+         margins: Sequence[int] = (0, 0, 0, 0)) -> tuple[np.ndarray | None, str]:
     """Sub-pixel distal tip of a tubular device in one frame.
 
     The tip is the free end of the skeleton farthest (along the skeleton) from
-    where the device leaves the image; it is refined by following the end
-    direction to the mask boundary and stepping back one local radius (the
-    device ends in a round cap).
+    where the device leaves the image (its edge, inside the dark ``margins``
+    top, bottom, left, right); it is refined by following the end direction to
+    the mask boundary and stepping back one local radius (the device ends in a
+    round cap).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components, dijkstra
@@ -279,8 +335,9 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int) -> tupl
     # Skeletons stop about one radius short of where the mask meets the image edge.
     dt = ndimage.distance_transform_edt(np.pad(sub, 1))[1:-1, 1:-1]
     border = border + int(np.ceil(dt.max()))
-    at_border = (gr < border) | (gc < border) | (gr >= mask.shape[0] - border) | (
-        gc >= mask.shape[1] - border)
+    top, bottom, left, right = (int(m) for m in margins)
+    at_border = (gr < border + top) | (gc < border + left) | (gr >= mask.shape[0] - border - bottom) | (
+        gc >= mask.shape[1] - border - right)
     if not at_border.any():
         return None, "ambiguous"  # both ends inside the image: which is distal is unknown
     n = sr.size
@@ -461,7 +518,8 @@ def _breaks(ends: np.ndarray, frame: np.ndarray, xy: np.ndarray, graph: Any
     return i, j, cut
 
 
-def find_keypoints(labels: Any, obj: str, *, min_area_px: int = 12, border_px: int = 4) -> KeyPointTrack:
+def find_keypoints(labels: Any, obj: str, *, min_area_px: int = 12, border_px: int = 4,
+                   frames: Any = None) -> KeyPointTrack:
     """Key points of a stationary object in every frame of a label stack.
 
     Parameters
@@ -475,6 +533,11 @@ def find_keypoints(labels: Any, obj: str, *, min_area_px: int = 12, border_px: i
         Smaller objects count as absent.
     border_px : int
         Skeleton pixels this close to the image edge are where a device enters.
+    frames : array_like, shape (N, H, W), optional
+        The grey frames the labels belong to: a device then enters at the
+        inner edge of their dark borders (:func:`image_margins`; exported cines
+        carry a black frame, collimated fields a dark band), not only at the
+        array's edge.
 
     Returns
     -------
@@ -484,13 +547,18 @@ def find_keypoints(labels: Any, obj: str, *, min_area_px: int = 12, border_px: i
     lab = _check_labels(labels, "labels")
     if obj not in OBJECTS:
         raise ArgumentError(f"obj: expected one of {list(OBJECTS)}, got {obj!r}")
+    margins = np.zeros((lab.shape[0], 4), int)
+    if frames is not None:
+        margins = image_margins(frames)
+        if margins.shape[0] != lab.shape[0] or np.shape(frames)[-2:] != lab.shape[1:]:
+            raise ArgumentError(f"frames: shape {np.shape(frames)} does not match the labels' {lab.shape}")
     if obj == "balloon":
         pts, reason = _balloon_centres(lab, min_area_px)
         return KeyPointTrack(obj, pts, reason)
     pts = np.full((lab.shape[0], 2), np.nan)
     reason = []
     for i in range(lab.shape[0]):  # one skeleton per frame
-        p, why = _tip(lab[i], OBJECTS[obj], border_px, min_area_px)
+        p, why = _tip(lab[i], OBJECTS[obj], border_px, min_area_px, margins[i])
         if p is not None:
             pts[i] = p
         reason.append(why)
@@ -856,7 +924,8 @@ def match_phase(
         present_b = (lb == OBJECTS[obj]).any(axis=(1, 2)).mean()
         if objects == "auto" and (present_a < 0.25 or present_b < 0.25):
             continue
-        ta, tb = find_keypoints(la, obj), find_keypoints(lb, obj)
+        ta = find_keypoints(la, obj, frames=run_a.frames)
+        tb = find_keypoints(lb, obj, frames=run_b.frames)
         if ta.found.any() and tb.found.any():
             tracks_a[obj], tracks_b[obj] = ta, tb
             if objects == "auto":
