@@ -141,6 +141,15 @@ def test_catheter_entering_through_a_black_border_has_its_tip():
         find_keypoints(lab, "catheter", frames=frames[:, :128])
 
 
+def test_catheter_stub_at_the_edge_gives_no_tip():
+    # Only the catheter's first 16 px are labelled catheter (the rest cut off by other labels):
+    # that end is where it enters, not its distal tip.
+    lab = _catheter_frame(16)
+    track = find_keypoints(lab, "catheter")
+    assert np.isnan(track.points_px[0]).all() and track.reason[0] == "no free end"
+    assert np.isfinite(find_keypoints(_catheter_frame(40), "catheter").points_px[0]).all()
+
+
 def test_lead_crossing_the_catheter_keeps_its_tip():
     lab = _catheter_frame()
     lab[0, 100:105, :] = LABELS["lead"]  # drawn over the catheter
