@@ -382,9 +382,6 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int,
     off_graph = coo_matrix((np.r_[off, off], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
     off_dist = dijkstra(off_graph, directed=False, indices=np.nonzero(at_border)[0], min_only=True)
     ends = ends[off_dist[ends] <= _MAX_OFF_SHARE * dist[ends]]
-    # An end within twice the border distance of where the device enters is its entry seen
-    # from inside (the rest of the device cut off by other labels), not its distal tip.
-    ends = ends[dist[ends] >= 2 * border]
     if ends.size == 0:
         return None, "no free end"
     tip = ends[np.argmax(np.where(np.isfinite(dist[ends]), dist[ends], -1))]
