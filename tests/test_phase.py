@@ -119,7 +119,7 @@ def _bordered_frame(top: int, bottom: int, left: int, right: int, seed: int = 0)
 def test_image_margins_of_a_black_export_border(sync_cs):
     frames = np.stack([_bordered_frame(10, 0, 14, 6), _bordered_frame(0, 7, 0, 0, seed=1)])
     np.testing.assert_array_equal(image_margins(frames), [[10, 0, 14, 6], [0, 7, 0, 0]])
-    # Vessels reaching the edge, dark anatomy and the phantom's vignette are no border.
+    # Vessels reaching the edge and the phantom's vignette are no border.
     case, _, _ = sync_cs
     assert not image_margins(case.run_a.frames).any()
     with pytest.raises(vc.ArgumentError, match="frames"):

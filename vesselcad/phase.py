@@ -547,14 +547,13 @@ def find_keypoints(labels: Any, obj: str, *, min_area_px: int = 12, border_px: i
     lab = _check_labels(labels, "labels")
     if obj not in OBJECTS:
         raise ArgumentError(f"obj: expected one of {list(OBJECTS)}, got {obj!r}")
-    margins = np.zeros((lab.shape[0], 4), int)
-    if frames is not None:
-        margins = image_margins(frames)
-        if margins.shape[0] != lab.shape[0] or np.shape(frames)[-2:] != lab.shape[1:]:
-            raise ArgumentError(f"frames: shape {np.shape(frames)} does not match the labels' {lab.shape}")
+    shape = np.shape(frames)
+    if frames is not None and (shape if len(shape) != 2 else (1, *shape)) != lab.shape:
+        raise ArgumentError(f"frames: shape {np.shape(frames)} does not match the labels' {lab.shape}")
     if obj == "balloon":
         pts, reason = _balloon_centres(lab, min_area_px)
         return KeyPointTrack(obj, pts, reason)
+    margins = np.zeros((lab.shape[0], 4), int) if frames is None else image_margins(frames)
     pts = np.full((lab.shape[0], 2), np.nan)
     reason = []
     for i in range(lab.shape[0]):  # one skeleton per frame
