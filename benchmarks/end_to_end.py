@@ -9,7 +9,10 @@ two DICOM files, read back and reconstructed, with all outputs written
   geometric stages);
 - ``truth+1.5deg``: the same with up to 1.5 degrees of angle error written
   into the DICOM headers (the truth stays in the true frame);
-- ``model``: the bundled ONNX segmentation model on every frame (the product).
+- ``model``: the bundled ONNX segmentation model on every frame (the product);
+- any of these with ``/vessels``: phase matching without a stationary object
+  (``objects="vessels"``: the vessels' epipolar consistency alone, as on a real
+  run whose catheter tip is not found).
 
 Metrics (ARCHITECTURE.md): 3D centreline error (reconstructed samples every
 0.5 mm to the true centreline of run A's tree at the chosen frame; mean and
@@ -50,17 +53,20 @@ STAGES = ("segmentation", "phase", "graphs", "refinement", "matching", "centreli
 
 def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
              segmenter: vc.Segmenter | None = None, tta: str = "chosen") -> dict:
-    mis = 1.5 if variant.endswith("1.5deg") else 0.0
+    base, _, option = variant.partition("/")
+    mis = 1.5 if base.endswith("1.5deg") else 0.0
     case = generate_case(seed, kind, n_frames, miscalibration_deg=mis)
-    d = workdir / f"{seed}_{variant}"
+    d = workdir / f"{seed}_{variant.replace('/', '_')}"
     paths = write_case(case, d)
-    labels = None if variant == "model" else (case.run_a.labels, case.run_b.labels)
+    labels = None if base == "model" else (case.run_a.labels, case.run_b.labels)
+    objects = "vessels" if option == "vessels" else "auto"
     t0 = time.perf_counter()
     row = {"seed": seed, "anatomy": kind, "frames": n_frames, "variant": variant}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            rec = reconstruct(paths["run_a"], paths["run_b"], labels=labels, model=segmenter, tta=tta)
+            rec = reconstruct(paths["run_a"], paths["run_b"], labels=labels, model=segmenter, tta=tta,
+                              objects=objects)
             rec.write(d / "out")
     except vc.VesselcadError as exc:
         row.update(status=f"failed: {exc}", seconds=time.perf_counter() - t0)
@@ -131,7 +137,11 @@ def main() -> None:
                     "every frame, or none (reconstruct(tta=...))")
     args = ap.parse_args()
     variants = args.variants.split(",")
-    segmenter = vc.Segmenter(args.model) if "model" in variants else None
+    bad = [v for v in variants if v.partition("/")[0] not in ("truth", "truth+1.5deg", "model")
+           or v.partition("/")[2] not in ("", "vessels")]
+    if bad:
+        ap.error(f"--variants: unknown {bad}; expected truth, truth+1.5deg, model, each optionally /vessels")
+    segmenter = vc.Segmenter(args.model) if any(v.startswith("model") for v in variants) else None
     rows = []
     t0 = time.time()
     with tempfile.TemporaryDirectory() as tmp:

@@ -8,10 +8,11 @@ Usage::
 For each case (anatomies cycle cs, lca, rca; run B acquired at other phases)
 the key points are detected from the phantom's ground-truth label masks (and,
 with ``--labels truth,model``, from the bundled segmentation model's labels of
-every frame, for the first two methods) and matched with
-``vesselcad.match_phase`` in four ways (the default, which uses the files'
+every frame, for the default, the earlier default and the vessels alone) and matched with
+``vesselcad.match_phase`` in five ways (the default, which uses the files'
 ECG; the default without ECG, i.e. image only; the paper's rule, the single
-pair with the least error, image only; a diagonal window of 4 with ECG).
+pair with the least error, image only; a diagonal window of 4 with ECG; the vessels'
+epipolar consistency alone, no stationary object, as when a real run shows no usable catheter tip).
 Since 2026-12-02 the default adds the vessels' epipolar consistency and
 leaves the ECG out; the earlier default (key point + ECG) is listed beside it.
 Prints markdown tables: the key-point reconstruction error of the chosen pair
@@ -47,7 +48,13 @@ METHODS = {
     "default, no ECG, no vessels": {"use_ecg": False, "vessel_weight": 0.0},
     "paper (window 0, no ECG)": {"window": 0, "use_ecg": False, "vessel_weight": 0.0},
     "window 4 + ECG": {"window": 4, "vessel_weight": 0.0},
+    "vessels only (no stationary object)": {"objects": "vessels"},
+    "key point + vessels at 30 mm (reconstruct's weight with the model)": {"vessel_weight": 30.0},
 }
+#: Methods also run on the model's labels.
+MODEL_METHODS = ("default (vessels)", "key point + ECG (before 2026-12-02)",
+                 "vessels only (no stationary object)",
+                 "key point + vessels at 30 mm (reconstruct's weight with the model)")
 
 
 def circ(d: np.ndarray) -> np.ndarray:
@@ -69,11 +76,16 @@ def _tree_error(case, i, j):
 
 def _row(case, kind, m, t_match, rng, method):
     """Metrics of one match against the case's ground truth."""
-    obj = m.objects[0]
-    det_a, det_b = m.keypoints_a[obj], m.keypoints_b[obj]
-    det_err = np.r_[np.linalg.norm(det_a - case.run_a.keypoints, axis=1),
-                    np.linalg.norm(det_b - case.run_b.keypoints, axis=1)]
-    finite = np.isfinite(m.matrix)
+    truth_m = error_matrix(case.run_a.view, case.run_a.keypoints, case.run_b.view, case.run_b.keypoints)
+    if m.objects:
+        obj = m.objects[0]
+        det_a, det_b = m.keypoints_a[obj], m.keypoints_b[obj]
+        det_err = np.r_[np.linalg.norm(det_a - case.run_a.keypoints, axis=1),
+                        np.linalg.norm(det_b - case.run_b.keypoints, axis=1)]
+        matrix = m.matrix
+    else:  # chosen by the vessels alone: the true key points' errors say what the pair is worth
+        obj, det_err, matrix = "none (true key point)", np.full(1, np.nan), truth_m
+    finite = np.isfinite(matrix)
     ii, jj = np.nonzero(finite)
     pick = rng.integers(len(ii))
     ph_a, ph_b = case.run_a.phases, case.run_b.phases
@@ -83,11 +95,10 @@ def _row(case, kind, m, t_match, rng, method):
     elig = m.eligible_a[:, None] & m.eligible_b[None, :]
     dist = circ(ph_a[:, None, 0] - ph_b[None, :, 0]) + circ(ph_a[:, None, 1] - ph_b[None, :, 1])
     oracle = np.unravel_index(np.argmin(np.where(elig, dist, np.inf)), dist.shape)
-    truth_m = error_matrix(case.run_a.view, case.run_a.keypoints, case.run_b.view, case.run_b.keypoints)
     tree_3d, tree_shape = _tree_error(case, m.frame_a, m.frame_b)
     return dict(tree_3d=tree_3d, tree_shape=tree_shape,
-        kind=kind, obj=obj, chosen=m.error_mm, zero=m.matrix[0, 0], random=m.matrix[ii[pick], jj[pick]],
-        mean_all=float(np.nanmean(m.matrix)), dc=dc, dr=dr,
+        kind=kind, obj=obj, chosen=float(matrix[m.frame_a, m.frame_b]), zero=matrix[0, 0],
+        random=matrix[ii[pick], jj[pick]], mean_all=float(np.nanmean(matrix)), dc=dc, dr=dr,
         oracle_dc=circ(ph_a[oracle[0], 0] - ph_b[oracle[1], 0]),
         oracle_err=float(truth_m[oracle]), det=float(np.nanmean(det_err)),
         found=float(np.isfinite(det_err).mean()), t_match=t_match, conf=m.confidence, method=method,
@@ -102,7 +113,7 @@ def main() -> int:
     ap.add_argument("--figure", default="", help="write the error matrix of the first case here")
     ap.add_argument("--labels", default="truth",
                     help="label sources, comma-separated: truth (the phantom's label masks) and/or model "
-                         "(the bundled ONNX segmentation on every frame; the first two methods)")
+                         "(the bundled ONNX segmentation on every frame; three of the methods)")
     args = ap.parse_args()
 
     kinds = ["cs", "lca", "rca"]
@@ -112,10 +123,10 @@ def main() -> int:
     segmenter = vc.Segmenter() if "model" in sources else None
     methods = {}
     for source in sources:
-        for n, (method, options) in enumerate(METHODS.items()):
+        for method, options in METHODS.items():
             if source == "truth":
                 methods[method] = ("truth", options)
-            elif n < 2:
+            elif method in MODEL_METHODS:
                 methods[f"model labels, {method}"] = ("model", options)
     rows = []
     rng = np.random.default_rng(0)

@@ -1,5 +1,7 @@
 """Motion phase matching (paper §2.3) against phantom ground truth."""
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -184,8 +186,13 @@ def test_no_object_gives_a_clear_error(sync_cs):
     case, run_a, run_b = sync_cs
     only_vessels_a = np.where(case.run_a.labels == LABELS["vessel"], 1, 0).astype(np.uint8)
     only_vessels_b = np.where(case.run_b.labels == LABELS["vessel"], 1, 0).astype(np.uint8)
+    # without devices 'auto' falls back to the vessels; with those turned off nothing is left
     with pytest.raises(vc.PhaseError, match="no stationary object"):
-        match_phase(run_a, run_b, only_vessels_a, only_vessels_b)
+        match_phase(run_a, run_b, only_vessels_a, only_vessels_b, vessel_weight=0.0)
+    with pytest.raises(vc.PhaseError, match="no vessel pixels"):
+        match_phase(run_a, run_b, np.zeros_like(only_vessels_a), only_vessels_b)
+    with pytest.raises(vc.ArgumentError, match="vessel_weight"):
+        match_phase(run_a, run_b, only_vessels_a, only_vessels_b, objects="vessels", vessel_weight=0.0)
     with pytest.raises(vc.PhaseError, match="balloon"):
         match_phase(run_a, run_b, only_vessels_a, case.run_b.labels, objects="balloon")
     with pytest.raises(vc.ArgumentError, match="labels_b"):
@@ -418,3 +425,26 @@ def test_vessels_choose_a_pair_whose_trees_agree():
     assert m.to_dict()["vessel_consistency"] == pytest.approx(m.consistency[m.frame_a, m.frame_b], abs=1e-4)
     with pytest.raises(vc.VesselcadError, match="vessel_weight"):
         match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, vessel_weight=-1.0)
+
+
+def test_vessels_alone_choose_the_pair_without_a_stationary_object(tmp_path):
+    # A real run often shows no usable catheter tip (it leaves the field, or the segmentation calls its
+    # filled end vessel). The vessels' epipolar consistency alone must still find frames whose true
+    # trees agree (the phantom's truth: same vessel points in both runs' frames).
+    case = generate_case(14, "cs", n_frames=40, rows=256, cols=256)
+    run_a, run_b = case.xa_runs()
+    vessels_a = np.where(case.run_a.labels == LABELS["vessel"], 1, 0).astype(np.uint8)
+    vessels_b = np.where(case.run_b.labels == LABELS["vessel"], 1, 0).astype(np.uint8)
+    m = match_phase(run_a, run_b, vessels_a, vessels_b)
+    forced = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels, objects="vessels")
+    assert (m.frame_a, m.frame_b) == (forced.frame_a, forced.frame_b)
+    assert any("no stationary object" in w for w in m.warnings)
+    assert not forced.objects and not any("no stationary object" in w for w in forced.warnings)
+    tree_a = np.vstack([b["points"] for b in case.run_a.trees[m.frame_a]["branches"]])
+    tree_b = np.vstack([b["points"] for b in case.run_b.trees[m.frame_b]["branches"]])
+    assert np.mean(np.linalg.norm(tree_a - tree_b, axis=1)) < 0.5
+    assert np.isnan(m.error_mm) and np.isnan(m.matrix).all() and "vessels" in m.basis
+    summary = m.to_dict()
+    json.dumps(summary, allow_nan=False)  # report.json stays valid JSON: no NaN
+    assert summary["error_mm"] is None and summary["point_mm"] is None and summary["objects"] == []
+    assert plot_error_matrix(m, tmp_path / "phase.png").stat().st_size > 1000

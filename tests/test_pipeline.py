@@ -209,6 +209,23 @@ def test_runs_that_cannot_give_a_tree_say_why(tmp_path, capsys):
     assert any("only 20.0 deg apart" in w for w in rec.warnings)
 
 
+def test_runs_without_a_stationary_object_are_matched_by_their_vessels(tmp_path):
+    # The catheter out of both runs' labels (a real run whose tip the segmentation does not find):
+    # the pair comes from the vessels alone, said in the warnings; report.json stays valid JSON and
+    # the tree still lies on the analytic one.
+    (ra, la), (rb, lb) = run_of(VIEW_A), run_of(VIEW_B)
+    la, lb = np.where(la == 2, 0, la), np.where(lb == 2, 0, lb)
+    rec = reconstruct(ra, rb, labels=(la, lb), solid=False)
+    assert rec.phase.objects == [] and any("no stationary object" in w for w in rec.warnings)
+    rep = json.loads(json.dumps(rec.report(), allow_nan=False))
+    assert rep["phase_error_mm"] is None and rep["phase"]["objects"] == []
+    paths = rec.write(tmp_path)
+    assert "epipolar consistency alone" in paths["report.html"].read_text()
+    assert json.loads(paths["report.json"].read_text())["phase"]["error_mm"] is None
+    err, _ = cKDTree(TRUTH).query(np.vstack([b.points for b in rec.tree]))
+    assert err.mean() < 0.5
+
+
 def test_chosen_frames_are_segmented_again_with_mirror_tta():
     # Every frame is segmented once (fast, for the phase matching); the two chosen frames
     # again with mirror test-time augmentation, and the tree comes from those labels.

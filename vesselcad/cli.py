@@ -43,8 +43,9 @@ def _cmd_phantom(args: argparse.Namespace) -> int:
 def _print_reconstruction(rec, paths: dict, out: Path) -> None:
     e = rec.errors
     ph = rec.phase
-    print(f"frames ({ph.frame_a}, {ph.frame_b}) by {', '.join(ph.objects) or 'given pair'}: phase error "
-          f"{ph.error_mm:.3f} mm, confidence {ph.confidence:.2f}")
+    print(f"frames ({ph.frame_a}, {ph.frame_b}) by {ph.basis}: "
+          + (f"phase error {ph.error_mm:.3f} mm, " if np.isfinite(ph.error_mm) else "")
+          + f"confidence {ph.confidence:.2f}")
     print(f"2D graphs: {len(rec.graphs[0].branches)} and {len(rec.graphs[1].branches)} branches; "
           f"{len(rec.match.pairs)} branch pairs matched, {len(rec.ok_branches)} reconstructed in 3D")
     if e:
@@ -297,7 +298,9 @@ def _parser() -> argparse.ArgumentParser:
                        help="segmentation model: an .onnx file, or 'int8' for the bundled model's int8 "
                        "version (~10x faster on CPUs with VNNI); default: the bundled fp32 model")
         q.add_argument("--objects", default="auto",
-                       help="stationary object for phase matching: auto, balloon, catheter or lead")
+                       help="stationary object for phase matching: auto, balloon, catheter, lead, or "
+                       "vessels (none: the vessels' epipolar consistency alone; auto falls back to it "
+                       "when no object is found in both runs)")
         q.add_argument("--tta", choices=["chosen", "all", "none"], default="chosen",
                        help="mirror test-time augmentation of the segmentation (the mean over the frame "
                        "and its three mirror images): the two chosen frames (default), every frame (~4x "

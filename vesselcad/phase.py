@@ -86,15 +86,18 @@ class PhaseMatch:
     frame_a, frame_b : int
         The chosen frame pair.
     error_mm, error_px : float
-        Its reconstruction error (paper §2.3).
+        Its reconstruction error (paper §2.3); NaN when no stationary object
+        was used (``objects`` empty: chosen by the vessels alone).
     matrix : numpy.ndarray, shape (N_A, N_B)
-        Reconstruction error of every pair in mm (NaN where a key point is missing).
+        Reconstruction error of every pair in mm (NaN where a key point is
+        missing, everywhere without a stationary object).
     score : numpy.ndarray, shape (N_A, N_B)
         What the pair is chosen by: ``matrix`` averaged along the diagonal
         over ``match_phase``'s ``window`` (equal to ``matrix`` for window 0),
         plus ``ecg_weight`` times the ECG phase difference when the ECG is used.
     objects : list of str
-        The stationary object(s) used; with several, a pair's error is the largest.
+        The stationary object(s) used; with several, a pair's error is the
+        largest. Empty when the pair was chosen by the vessels alone.
     keypoints_a, keypoints_b : dict of str to (N, 2) arrays
         Key points per object.
     eligible_a, eligible_b : numpy.ndarray of bool
@@ -106,7 +109,8 @@ class PhaseMatch:
     confidence : float
         ``1 - score / runner_up_score`` in [0, 1]: 0 ambiguous, 1 unique.
     point_mm : numpy.ndarray, shape (3,)
-        The triangulated key point of the (first) object at the chosen pair.
+        The triangulated key point of the (first) object at the chosen pair
+        (NaN without one).
     warnings : list of str
     fill_a, fill_b : numpy.ndarray
         Vessel area of every frame as a share of the run's largest (contrast
@@ -146,11 +150,19 @@ class PhaseMatch:
     consistency: np.ndarray | None = None
     vessel_weight: float = 0.0
 
+    @property
+    def basis(self) -> str:
+        """What the pair was chosen by, in words (for reports)."""
+        if not self.objects:
+            return ("the vessels' epipolar consistency alone (no stationary object)"
+                    if self.consistency is not None else "given pair")
+        return ", ".join(self.objects)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary (without the matrix)."""
         return {
             "frame_a": self.frame_a, "frame_b": self.frame_b,
-            "error_mm": round(self.error_mm, 4), "error_px": round(self.error_px, 4),
+            "error_mm": _round_or_none(self.error_mm), "error_px": _round_or_none(self.error_px),
             "objects": self.objects,
             "runner_up": None if self.runner_up is None else list(self.runner_up),
             "runner_up_error_mm": None if not np.isfinite(self.runner_up_error_mm)
@@ -158,7 +170,7 @@ class PhaseMatch:
             "margin_mm": None if not np.isfinite(self.margin_mm) else round(self.margin_mm, 4),
             "confidence": round(self.confidence, 4),
             "eligible_frames_a": int(self.eligible_a.sum()), "eligible_frames_b": int(self.eligible_b.sum()),
-            "point_mm": np.round(self.point_mm, 3).tolist(),
+            "point_mm": np.round(self.point_mm, 3).tolist() if np.isfinite(self.point_mm).all() else None,
             "fill": None if self.fill_a is None else [round(float(self.fill_a[self.frame_a]), 3),
                                                       round(float(self.fill_b[self.frame_b]), 3)],
             "window": self.window, "ecg": self.ecg,
@@ -167,6 +179,11 @@ class PhaseMatch:
             "vessel_weight": self.vessel_weight,
             "warnings": list(self.warnings),
         }
+
+
+def _round_or_none(x: float, digits: int = 4) -> float | None:
+    """``round(x)``, or None (JSON null) for NaN: no key point, no error."""
+    return round(float(x), digits) if np.isfinite(x) else None
 
 
 # ---------------------------------------------------------------- key points
@@ -829,6 +846,12 @@ def match_phase(
         Stationary object(s): 'balloon', 'catheter', 'lead'. 'auto' takes the
         first of these found in at least a quarter of the frames of both runs.
         With several objects a pair's error is the largest over them.
+        'vessels': no stationary object; the pair is chosen by the vessels'
+        :func:`epipolar_consistency` alone (``vessel_weight`` must be > 0).
+        'auto' falls back to that, with a warning, when no object is found in
+        both runs (a real run whose catheter tip leaves the field, or that the
+        segmentation labels vessel); ``matrix``, ``error_mm`` and ``point_mm``
+        are then NaN.
     min_contrast : float
         Only frames whose vessel area is at least this share of the run's
         largest are eligible, so the chosen pair shows filled vessels (0: all).
@@ -906,15 +929,22 @@ def match_phase(
         raise ArgumentError(f"use_ecg: expected True, False or None, got {use_ecg!r}")
     if not prefer_fill >= 0.0:
         raise ArgumentError(f"prefer_fill: expected a share >= 0, got {prefer_fill}")
-    if objects == "auto":
+    if isinstance(objects, str) and objects == "vessels":
+        wanted: list[str] = []
+        if vessel_weight <= 0.0:
+            raise ArgumentError("vessel_weight: objects='vessels' chooses the pair by the vessels alone; "
+                                "expected vessel_weight > 0, got 0")
+    elif isinstance(objects, str) and objects == "auto":
         wanted = list(OBJECTS)
     elif isinstance(objects, str):
         wanted = [objects]
     else:
         wanted = list(objects)
     bad = [o for o in wanted if o not in OBJECTS]
-    if bad or not wanted:
-        raise ArgumentError(f"objects: expected 'auto' or some of {list(OBJECTS)}, got {objects!r}")
+    if bad or (not wanted and objects != "vessels"):
+        raise ArgumentError(f"objects: expected 'auto', 'vessels' or some of {list(OBJECTS)}, "
+                            f"got {objects!r}")
+    has_vessels = bool((la == _VESSEL).any() and (lb == _VESSEL).any())
 
     warnings_: list[str] = []
     tracks_a, tracks_b = {}, {}
@@ -932,27 +962,44 @@ def match_phase(
         elif objects != "auto":
             missing = "run A" if not ta.found.any() else "run B"
             raise PhaseError(f"objects: no {obj} key point found in any frame of {missing}")
-    if not tracks_a:
-        raise PhaseError(
-            f"labels_a/labels_b: no stationary object ({', '.join(wanted)}) found in both runs; "
-            "motion phase matching needs a balloon, catheter or lead visible in both (or pass pair=)")
+    vessels_only = not tracks_a
+    if vessels_only and wanted:
+        if not (has_vessels and vessel_weight > 0.0):
+            raise PhaseError(
+                f"labels_a/labels_b: no stationary object ({', '.join(wanted)}) found in both runs"
+                + ("" if has_vessels else ", and no vessel pixels in one run")
+                + "; motion phase matching needs a balloon, catheter or lead visible in both, or the "
+                "vessels (vessel_weight > 0), or pass pair=")
+        warnings_.append(f"no stationary object ({', '.join(wanted)}) found in both runs: the frame pair "
+                         "is chosen by the vessels' epipolar consistency alone")
+    elif vessels_only and not has_vessels:
+        raise PhaseError("labels_a/labels_b: objects='vessels' but one run has no vessel pixels")
     used = list(tracks_a)
-    mats = [error_matrix(run_a.view, tracks_a[o].points_px, run_b.view, tracks_b[o].points_px)
-            for o in used]
-    matrix = mats[0] if len(mats) == 1 else np.max(np.stack(mats), axis=0)
+    n_a, n_b = la.shape[0], lb.shape[0]
+    if vessels_only:
+        matrix = np.full((n_a, n_b), np.nan)
+        valid = np.ones((n_a, n_b), bool)
+    else:
+        mats = [error_matrix(run_a.view, tracks_a[o].points_px, run_b.view, tracks_b[o].points_px)
+                for o in used]
+        matrix = mats[0] if len(mats) == 1 else np.max(np.stack(mats), axis=0)
+        valid = np.isfinite(matrix)
 
     fill_a, fill_b = _fill(la), _fill(lb)
     elig_a, elig_b = fill_a >= min_contrast, fill_b >= min_contrast
-    allowed = elig_a[:, None] & elig_b[None, :] & np.isfinite(matrix)
+    allowed = elig_a[:, None] & elig_b[None, :] & valid
     full_a, full_b = fill_a >= prefer_fill, fill_b >= prefer_fill
     if prefer_fill <= 1.0 and (allowed & full_a[:, None] & full_b[None, :]).any():
         elig_a, elig_b = elig_a & full_a, elig_b & full_b
         allowed &= full_a[:, None] & full_b[None, :]
     consistency = None
-    if vessel_weight > 0.0 and (la == _VESSEL).any() and (lb == _VESSEL).any():
+    if vessel_weight > 0.0 and has_vessels:
         try:
             consistency = epipolar_consistency(run_a.view, la, run_b.view, lb)
         except ArgumentError as exc:
+            if vessels_only:
+                raise PhaseError(f"run_a/run_b: no stationary object to match, and the vessels' epipolar "
+                                 f"consistency cannot be measured: {exc}") from None
             warnings_.append(f"vessel consistency not used: {exc}")
     ecg_diff = None
     if use_ecg or (use_ecg is None and consistency is None):
@@ -970,30 +1017,29 @@ def match_phase(
         window = 0 if ecg_diff is not None or consistency is not None else 4
     # A short run cannot hold a window of window + 1 valid pairs on a diagonal: shrink it.
     window = min(int(window), (min(run_a.n_frames, run_b.n_frames) - 1) // 2)
-    score = diagonal_mean(matrix, window)
+    score = diagonal_mean(np.where(valid, 0.0, np.nan) if vessels_only else matrix, window)
     if ecg_diff is not None:
         score = score + ecg_weight * ecg_diff
     if consistency is not None:
         score = score + vessel_weight * consistency
     allowed &= np.isfinite(score)
     if not allowed.any():
-        if not np.isfinite(matrix).any():
+        if not valid.any():
             raise PhaseError(f"run_a/run_b: key points found in both runs ({', '.join(used)}) cannot be "
                              "triangulated: the two views' rays do not cross (one viewing direction "
                              "for both runs?); pass pair= or check the runs' geometry")
-        if not (elig_a[:, None] & elig_b[None, :] & np.isfinite(matrix)).any():
+        if not (elig_a[:, None] & elig_b[None, :] & valid).any():
             raise PhaseError("labels_a/labels_b: no frame pair has key points in both runs among the "
                              "eligible frames; lower min_contrast or pass pair=")
         # The fill and ECG rules never empty the choice, so only the diagonal window is left.
         raise PhaseError(f"window: no diagonal of {window + 1} eligible pairs with key points "
                          "(too few frames with key points); pass window=0 or pair=")
-    n_a, n_b = matrix.shape
     masked = np.where(allowed, score, np.inf)
     if pair is not None:
         i, j = int(pair[0]), int(pair[1])
         if not (0 <= i < n_a and 0 <= j < n_b):
             raise ArgumentError(f"pair: ({i}, {j}) is outside the runs' {n_a} x {n_b} frames")
-        if not np.isfinite(matrix[i, j]):
+        if not vessels_only and not np.isfinite(matrix[i, j]):
             warnings_.append(f"forced pair ({i}, {j}) has no key point in one of the frames")
     else:
         i, j = (int(x) for x in np.unravel_index(np.argmin(masked), masked.shape))
@@ -1010,17 +1056,21 @@ def match_phase(
     margin = runner_err - best_score if runner is not None else float("nan")
     confidence = (float(np.clip(1.0 - best_score / runner_err, 0.0, 1.0)) if runner is not None
                   and runner_err > 0 else (1.0 if runner is None else 0.0))
-    rec = reconstruction_error(run_a.view, tracks_a[used[0]].points_px[i], run_b.view,
-                               tracks_b[used[0]].points_px[j])
+    if vessels_only:
+        error_px, point_mm = float("nan"), np.full(3, np.nan)
+    else:
+        rec = reconstruction_error(run_a.view, tracks_a[used[0]].points_px[i], run_b.view,
+                                   tracks_b[used[0]].points_px[j])
+        error_px, point_mm = float(rec.error_px), np.asarray(rec.points_mm)
     if runner is not None and confidence < 0.2:
         warnings_.append(f"ambiguous phase match: runner-up pair {runner} is only {margin:.3f} mm worse")
     return PhaseMatch(
-        frame_a=i, frame_b=j, error_mm=best, error_px=float(rec.error_px), matrix=matrix, score=score,
+        frame_a=i, frame_b=j, error_mm=best, error_px=error_px, matrix=matrix, score=score,
         objects=used,
         keypoints_a={o: t.points_px for o, t in tracks_a.items()},
         keypoints_b={o: t.points_px for o, t in tracks_b.items()},
         eligible_a=elig_a, eligible_b=elig_b, runner_up=runner, runner_up_error_mm=runner_err,
-        margin_mm=margin, confidence=confidence, point_mm=np.asarray(rec.points_mm), warnings=warnings_,
+        margin_mm=margin, confidence=confidence, point_mm=point_mm, warnings=warnings_,
         fill_a=fill_a, fill_b=fill_b, window=window, ecg=ecg_diff is not None,
         consistency=consistency, vessel_weight=float(vessel_weight) if consistency is not None else 0.0,
     )
@@ -1037,11 +1087,18 @@ def plot_error_matrix(match: PhaseMatch, path: str | os.PathLike, *, title: str 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [(match.matrix, "reconstruction error (mm)",
-               title or f"motion phase error matrix ({', '.join(match.objects)}); grey: not eligible")]
+    panels = []
+    if match.objects:
+        panels.append((match.matrix, "reconstruction error (mm)",
+                       title or f"motion phase error matrix ({', '.join(match.objects)}); "
+                       "grey: not eligible"))
     if match.consistency is not None:
         panels.append((match.consistency, "vessel crossings differing per epipolar line",
-                       f"vessel consistency (x {match.vessel_weight:g} mm in the score)"))
+                       (title + "\n" if title and not match.objects else "")
+                       + f"vessel consistency (x {match.vessel_weight:g} mm in the score)"
+                       + ("" if match.objects else "; no stationary object: the only term")))
+    if not panels:  # a given pair without key points or vessels: show the empty key point matrix
+        panels.append((match.matrix, "reconstruction error (mm)", title or "motion phase error matrix"))
     fig, axes = plt.subplots(1, len(panels), figsize=(6.4 * len(panels), 5.2), squeeze=False)
     shade = ~(match.eligible_a[:, None] & match.eligible_b[None, :])
     for ax, (m, label, heading) in zip(axes[0], panels, strict=True):

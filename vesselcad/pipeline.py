@@ -206,8 +206,8 @@ class Reconstruction:
             "vesselcad": _version(),
             "sources": list(self.sources),
             "frame_a": int(self.phase.frame_a), "frame_b": int(self.phase.frame_b),
-            "phase_error_mm": round(float(self.phase.error_mm), 4),
-            "phase_error_px": round(float(self.phase.error_px), 4),
+            "phase_error_mm": self.phase.to_dict()["error_mm"],
+            "phase_error_px": self.phase.to_dict()["error_px"],
             "phase": self.phase.to_dict(),
             **views,
             "refinement": None if ref is None else ref.to_dict(),
@@ -598,7 +598,10 @@ def reconstruct(
         :data:`MODEL_VESSEL_WEIGHT_MM` (30 mm) with the model's, whose
         catheter tips are less reliable (``report.json``: ``phase.vessel_weight``).
     objects : 'auto', str or list of str
-        Stationary object(s) for phase matching: 'balloon', 'catheter', 'lead'.
+        Stationary object(s) for phase matching: 'balloon', 'catheter', 'lead';
+        'vessels' for none (the pair is chosen by the vessels' epipolar
+        consistency alone). 'auto' falls back to the vessels, with a warning,
+        when no object is found in both runs (``match_phase``).
     geometry_a, geometry_b : dict, CArmView or path, optional
         Geometry overrides per run (CArmView entries, or a view.json), e.g.
         when an export lacks SID/SOD.

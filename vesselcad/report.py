@@ -267,6 +267,7 @@ def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_
     vessel_txt = ("" if ph.consistency is None else
                   f" and the vessels' epipolar consistency ({ph.consistency[ph.frame_a, ph.frame_b]:.3f} "
                   "crossings differing per epipolar line)")
+    phase_txt = f"phase error {ph.error_mm:.3f} mm, " if np.isfinite(ph.error_mm) else ""
     srcs = " and ".join(html.escape(s or "(in memory)") for s in rec.sources)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>vesselcad reconstruction</title>
@@ -279,7 +280,7 @@ img {{ max-width: 100%; }} #view3d {{ border: 1px solid #aaa; cursor: grab; }}
 </style></head><body>
 <h1>vesselcad reconstruction</h1>
 <p>Runs: {srcs}. Chosen frames: <b>A {ph.frame_a}</b>, <b>B {ph.frame_b}</b> by
-{html.escape(', '.join(ph.objects) or 'given pair')}{vessel_txt} (phase error {ph.error_mm:.3f} mm, confidence
+{html.escape(ph.basis)}{vessel_txt if ph.objects else ''} ({phase_txt}confidence
 {ph.confidence:.2f}). Branches reconstructed: <b>{len(rec.ok_branches)} of {len(rec.branches)}</b>
 matched pairs ({len(rec.graphs[0].branches)} and {len(rec.graphs[1].branches)} branches in the 2D graphs).
 Reprojection error: <b>{rep_txt}</b>. Solid: {solid_txt}. Geometry refinement: {ref_txt}.</p>
