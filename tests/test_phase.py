@@ -78,6 +78,24 @@ def test_catheter_cut_by_vessels_keeps_its_tip():
     assert np.linalg.norm(tip - [128.0, 77.5]) < 2.0
 
 
+def test_spur_of_a_catheter_crossing_the_field_is_no_tip():
+    # A second catheter runs through the whole field (top edge to bottom edge); a few of its edge
+    # pixels labelled as another class leave a notch or a bump, and its skeleton a 4 px spur. The
+    # spur's end is no tip: the guiding catheter's end (row 90, its cap's centre at 87.5) is.
+    lab = np.zeros((1, 256, 256), np.uint8)
+    lab[0, :, 198:203] = LABELS["catheter"]
+    lab[0, 120:125, 203:207] = LABELS["catheter"]
+    lab[0, :90, 58:63] = LABELS["catheter"]
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [60.0, 87.5]) < 2.0
+    # The same bump on a catheter that enters once and ends in the field is kept as it is: a
+    # device that ends past a junction can end in a short branch.
+    single = _catheter_frame()
+    single[0, 120:125, 131:135] = LABELS["catheter"]
+    tip = find_keypoints(single, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [128.0, 197.5]) < 2.0
+
+
 def test_catheter_whose_filled_shaft_is_taken_for_vessel_keeps_its_tip():
     # A guiding catheter comes up from the bottom edge and leaves at the top (its ascending
     # shaft, column 60); its descending part comes back down from the top edge (column 30),

@@ -300,6 +300,13 @@ _JOIN_MIN_PX = 6.0
 _JOIN_RADII = 4.0  # device radii
 # Largest share of the path from the border to a device's tip that may run on other devices.
 _MAX_OFF_SHARE = 0.5
+# A free end at most this far (px, or device radii if more) along the skeleton from a junction
+# is a spur (see _tip), not a tip.
+_SPUR_MIN_PX = 6.0
+_SPUR_RADII = 2.5
+# A device piece whose border contacts span more than this share of the image's longer side
+# crosses the field (enters and leaves it).
+_CROSSING_SHARE = 0.25
 
 
 def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int,
@@ -360,6 +367,25 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int,
     n = sr.size
     graph = coo_matrix((np.r_[wts, wts], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
     degree = np.diff(graph.indptr)
+    # A segmentation that gives a few pixels of a device's edge to another class (a vessel it
+    # crosses) leaves a notch, and the skeleton a spur: a free end a few pixels from a junction
+    # of a device that goes on. A catheter crossing the whole field then had its spur's end for
+    # a tip (phantom rca view A, model labels: 300 px off). Spurs are pruned shortest first, so
+    # of the two short forks a skeleton often ends in, the one left is the tip.
+    # Only on a piece that meets the image border at two places far apart (a device crossing the
+    # whole field): a device that enters once may end in a short branch past a junction.
+    spur_px = max(_SPUR_MIN_PX, _SPUR_RADII * float(dt.max()))
+    _, comp0 = connected_components(graph, directed=False)
+    crossing = np.zeros(comp0.max() + 1, bool)
+    for c in np.unique(comp0[at_border]):  # a few pieces per frame
+        pts = xy[at_border & (comp0 == c)]
+        crossing[c] = np.ptp(pts, axis=0).max() > _CROSSING_SHARE * max(mask.shape)
+    keep = _prune_spurs(graph, xy, ~at_border & own & ~others[sr, sc] & crossing[comp0], spur_px)
+    if not keep.all():
+        kept = keep[src] & keep[dst]
+        src, dst, wts = src[kept], dst[kept], wts[kept]
+        graph = coo_matrix((np.r_[wts, wts], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
+        degree = np.diff(graph.indptr)
     free = np.nonzero((degree == 1) & ~at_border & own & ~others[sr, sc])[0]
     # Where the segmentation gives a crossing to another class (vessels over the catheter),
     # the device is cut in two: the cut ends face each other; bridge them.
@@ -469,6 +495,58 @@ def _joins(xy: np.ndarray, comp: np.ndarray, entering: np.ndarray, frame: np.nda
         if not joined:
             break
     return np.array(out, int).reshape(-1, 2)
+
+
+def _prune_spurs(graph: Any, xy: np.ndarray, candidate: np.ndarray, spur_px: float) -> np.ndarray:
+    """Skeleton nodes kept after removing spurs (boolean per node).
+
+    Junction pixels (degree >= 3) that touch are one junction. A terminal
+    branch (from a free end in ``candidate`` to one junction) of at most
+    ``spur_px`` is a spur where the junction has at least two other branches
+    (the device goes on through it: all such spurs go). Where it has one (a
+    skeleton often ends in a short fork), the longest short branch stays: it
+    leads to the device's end.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = xy.shape[0]
+    keep = np.ones(n, bool)
+    g = graph.tocoo()
+    degree = np.diff(graph.tocsr().indptr)
+    junction = degree >= 3
+    if not junction.any():
+        return keep
+    src, dst = g.row, g.col
+    inner = junction[src] & junction[dst]
+    _, cluster = connected_components(coo_matrix((np.ones(inner.sum()), (src[inner], dst[inner])),
+                                                 shape=(n, n)), directed=False)
+    plain = ~junction[src] & ~junction[dst]
+    _, branch = connected_components(coo_matrix((np.ones(plain.sum()), (src[plain], dst[plain])),
+                                                shape=(n, n)), directed=False)
+    nb = int(branch.max()) + 1
+    on_branch = ~junction
+    size = np.bincount(branch[on_branch], minlength=nb)
+    # a branch's length: its nodes plus the step into the junction
+    length = np.bincount(branch[src[plain]], weights=np.linalg.norm(xy[src[plain]] - xy[dst[plain]], axis=1),
+                         minlength=nb) / 2.0 + 1.0
+    free_end = np.bincount(branch[on_branch & (degree == 1) & candidate], minlength=nb) > 0
+    link = junction[dst] & ~junction[src]  # branch node -> junction node
+    pairs = np.unique(np.stack([branch[src[link]], cluster[dst[link]]], axis=1), axis=0)
+    touches = np.bincount(pairs[:, 0], minlength=nb)
+    terminal = free_end & (touches == 1) & (size > 0)
+    short = terminal & (length <= spur_px)
+    if not short.any():
+        return keep
+    drop = np.zeros(nb, bool)
+    for c in np.unique(pairs[short[pairs[:, 0]], 1]):  # junctions with short branches: a few
+        at = pairs[pairs[:, 1] == c, 0]
+        spurs = at[short[at]]
+        if at.size - spurs.size < 2:  # the device ends here: the longest short branch stays
+            spurs = spurs[spurs != spurs[np.argmax(length[spurs])]]
+        drop[spurs] = True
+    keep[on_branch & drop[branch]] = False
+    return keep
 
 
 def _end_directions(ends: np.ndarray, xy: np.ndarray, graph: Any, back: int = 10) -> np.ndarray:
