@@ -179,6 +179,9 @@ def test_bad_arguments_are_named():
     (ra, la), (rb, lb) = run_of(VIEW_A), run_of(VIEW_B)
     with pytest.raises(vc.ArgumentError, match="method"):
         reconstruct(ra, rb, labels=(la, lb), method="magic")
+    for objects in ("stent", ["catheter", "vessels"], []):
+        with pytest.raises(vc.ArgumentError, match="objects"):
+            reconstruct(ra, rb, labels=(la, lb), objects=objects)
     with pytest.raises(vc.ArgumentError, match=r"labels\[1\]"):
         reconstruct(ra, rb, labels=(la, lb[:1]))
     with pytest.raises(vc.ArgumentError, match="frames"):

@@ -154,8 +154,7 @@ class PhaseMatch:
     def basis(self) -> str:
         """What the pair was chosen by, in words (for reports)."""
         if not self.objects:
-            return ("the vessels' epipolar consistency alone (no stationary object)"
-                    if self.consistency is not None else "given pair")
+            return "the vessels' epipolar consistency alone (no stationary object)"
         return ", ".join(self.objects)
 
     def to_dict(self) -> dict[str, Any]:
@@ -370,10 +369,9 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int,
     # A segmentation that gives a few pixels of a device's edge to another class (a vessel it
     # crosses) leaves a notch, and the skeleton a spur: a free end a few pixels from a junction
     # of a device that goes on. A catheter crossing the whole field then had its spur's end for
-    # a tip (phantom rca view A, model labels: 300 px off). Spurs are pruned shortest first, so
-    # of the two short forks a skeleton often ends in, the one left is the tip.
-    # Only on a piece that meets the image border at two places far apart (a device crossing the
-    # whole field): a device that enters once may end in a short branch past a junction.
+    # a tip (phantom rca view A, model labels: 300 px off). Spurs are pruned (_prune_spurs) only on
+    # a piece that meets the image border at two places far apart (a device crossing the whole
+    # field): a device that enters once may end in a short branch past a junction.
     spur_px = max(_SPUR_MIN_PX, _SPUR_RADII * float(dt.max()))
     _, comp0 = connected_components(graph, directed=False)
     crossing = np.zeros(comp0.max() + 1, bool)
@@ -1095,7 +1093,7 @@ def match_phase(
         window = 0 if ecg_diff is not None or consistency is not None else 4
     # A short run cannot hold a window of window + 1 valid pairs on a diagonal: shrink it.
     window = min(int(window), (min(run_a.n_frames, run_b.n_frames) - 1) // 2)
-    score = diagonal_mean(np.where(valid, 0.0, np.nan) if vessels_only else matrix, window)
+    score = diagonal_mean(np.zeros((n_a, n_b)) if vessels_only else matrix, window)
     if ecg_diff is not None:
         score = score + ecg_weight * ecg_diff
     if consistency is not None:
@@ -1175,8 +1173,6 @@ def plot_error_matrix(match: PhaseMatch, path: str | os.PathLike, *, title: str 
                        (title + "\n" if title and not match.objects else "")
                        + f"vessel consistency (x {match.vessel_weight:g} mm in the score)"
                        + ("" if match.objects else "; no stationary object: the only term")))
-    if not panels:  # a given pair without key points or vessels: show the empty key point matrix
-        panels.append((match.matrix, "reconstruction error (mm)", title or "motion phase error matrix"))
     fig, axes = plt.subplots(1, len(panels), figsize=(6.4 * len(panels), 5.2), squeeze=False)
     shade = ~(match.eligible_a[:, None] & match.eligible_b[None, :])
     for ax, (m, label, heading) in zip(axes[0], panels, strict=True):

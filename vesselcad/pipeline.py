@@ -28,7 +28,7 @@ from .geometry import CArmView
 from .io import XARun, load_run
 from .matching import BranchPair, GraphMatch, match_graphs
 from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
-from .phase import PhaseMatch, match_phase
+from .phase import OBJECTS, PhaseMatch, match_phase
 from .refine import Refinement, refine_geometry
 from .segment import Segmenter
 from .surface import semi_axes
@@ -202,13 +202,13 @@ class Reconstruction:
             solid = {"valid": bool(chk["valid"]), "watertight": bool(chk["watertight"]),
                      "solids": int(chk.get("solids", 1)), "volume_mm3": round(float(self.solid.volume), 3),
                      "failed": {str(k): v for k, v in self.solid.failed.items()}}
+        phase = self.phase.to_dict()
         return {
             "vesselcad": _version(),
             "sources": list(self.sources),
             "frame_a": int(self.phase.frame_a), "frame_b": int(self.phase.frame_b),
-            "phase_error_mm": self.phase.to_dict()["error_mm"],
-            "phase_error_px": self.phase.to_dict()["error_px"],
-            "phase": self.phase.to_dict(),
+            "phase_error_mm": phase["error_mm"], "phase_error_px": phase["error_px"],
+            "phase": phase,
             **views,
             "refinement": None if ref is None else ref.to_dict(),
             "graphs": {"a": _graph_summary(self.graphs[0]), "b": _graph_summary(self.graphs[1])},
@@ -645,6 +645,14 @@ def reconstruct(
         tta = "chosen" if tta else "none"
     if tta not in TTA_MODES:
         raise ArgumentError(f"tta: expected one of {TTA_MODES}, got {tta!r}")
+    # checked before the segmentation (minutes on long runs), not only by match_phase after it
+    if isinstance(objects, str):
+        ok = objects in ("auto", "vessels", *OBJECTS)
+    else:
+        ok = isinstance(objects, (list, tuple)) and 0 < len(objects) and set(objects) <= set(OBJECTS)
+    if not ok:
+        raise ArgumentError(f"objects: expected 'auto', 'vessels' or some of {list(OBJECTS)}, "
+                            f"got {objects!r}")
     timings: dict[str, float] = {}
     warn: list[str] = []
     t = time.perf_counter()
