@@ -16,7 +16,9 @@ rotation, mirror) to the crop, centred on a foreground pixel 75% of the time.
 With ``focus_fraction`` > 0 that share of the phantom crops is centred on a
 *focus* pixel instead: a catheter pixel within ``FOCUS_RADIUS`` px of a vessel
 pixel (the ostium, where a contrast-filled catheter runs into the tree, and
-catheter-vessel crossings) or a balloon pixel, where the model errs most.
+catheter-vessel crossings) or a balloon pixel, where the model errs most;
+with a *hard* map (:mod:`.hard_focus`, ``train.py --hard-focus``) also the
+pixels where the model being fine-tuned mislabels a device, weighted higher.
 """
 
 from __future__ import annotations
@@ -147,13 +149,21 @@ class BatchAugmenter:
     focus_fraction : float
         Share of the phantom crops centred on a focus pixel (:func:`focus_grid`)
         where the frame has one; 0 (default) draws as before.
+    hard : np.ndarray, optional
+        (N, ceil(H/4), ceil(W/4)) bool grid of the pool frames' *hard* cells
+        (:mod:`.hard_focus`: where a trained model mislabels devices); with
+        ``focus_fraction`` > 0 they join the focus pixels, each weighing
+        ``hard_weight`` times a focus pixel when a focus centre is drawn.
+    hard_weight : float
+        Weight of a hard cell against a focus pixel (1).
     """
 
     def __init__(self, pool: Pool, real_images: list[np.ndarray], real_masks: list[np.ndarray], *,
                  crop: int = 256, real_fraction: float = 0.35, device: torch.device | str = "cpu",
                  seed: int = 0, augment: bool = True, focus_fraction: float = 0.0,
                  labelled_images: list[np.ndarray] | None = None,
-                 labelled_targets: list[np.ndarray] | None = None, labelled_fraction: float = 0.0):
+                 labelled_targets: list[np.ndarray] | None = None, labelled_fraction: float = 0.0,
+                 hard: np.ndarray | None = None, hard_weight: float = 4.0):
         dev = torch.device(device)
         if not 0.0 <= labelled_fraction <= 1.0:
             raise ValueError(f"labelled_fraction must lie in [0, 1], got {labelled_fraction}")
@@ -167,7 +177,17 @@ class BatchAugmenter:
             raise ValueError(f"pool frames must share one shape, got {sorted(shapes)}")
         self.frames = torch.from_numpy(np.stack(pool.frames).astype(np.int16)).to(dev)
         self.labels = torch.from_numpy(np.stack(pool.labels).astype(np.uint8)).to(dev)
-        self.focus = focus_grid(self.labels) if self.focus_fraction > 0 else None
+        self.focus = focus_grid(self.labels).float() if self.focus_fraction > 0 else None
+        if hard is not None:
+            if self.focus is None:
+                raise ValueError("hard-focus cells need focus_fraction > 0")
+            hard_t = torch.from_numpy(np.asarray(hard, bool)).to(dev)
+            if hard_t.shape != self.focus.shape:
+                raise ValueError(f"hard-focus grid {tuple(hard_t.shape)} does not fit the pool's "
+                                 f"{tuple(self.focus.shape)}")
+            if hard_weight < 0:
+                raise ValueError(f"hard_weight must be >= 0, got {hard_weight}")
+            self.focus = self.focus + float(hard_weight) * hard_t.float()
         self.inv_max = torch.tensor([1.0 / (2**b - 1) for b in pool.bits], device=dev)
         if real_images:
             self.real = torch.from_numpy(np.stack(real_images).astype(np.uint8)).to(dev)

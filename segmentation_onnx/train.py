@@ -30,6 +30,7 @@ import torch.nn.functional as F
 
 from .data import NOT_VESSEL, REAL_VAL_IDS, Pool, load_real, render_pool
 from .evaluate import iou_per_class
+from .hard_focus import load_hard
 from .model import DEFAULT_WIDTHS, N_CLASSES, build_model, revive_dead_blocks
 from .torch_aug import BatchAugmenter
 
@@ -120,6 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--real-fraction", type=float, default=0.35)
     ap.add_argument("--focus-fraction", type=float, default=0.0,
                     help="share of phantom crops centred on catheter pixels next to vessels or on balloons")
+    ap.add_argument("--hard-focus", help="hard-focus map of the pool (.npz from "
+                    "`python -m segmentation_onnx.hard_focus`): its cells join the focus pixels")
+    ap.add_argument("--hard-weight", type=float, default=4.0,
+                    help="weight of a hard cell against a focus pixel when a focus centre is drawn")
     ap.add_argument("--pool", help="rendered phantom pool (.npz from `python -m segmentation_onnx.data`); "
                     "rendered here when missing")
     ap.add_argument("--pool-phantoms", type=int, default=200, help="phantoms to render when --pool is absent")
@@ -143,8 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--revive", action="store_true",
                     help="with --init: re-initialize blocks whose batch norms collapsed to zero")
     ap.add_argument("--amp", action="store_true",
-                    help="bfloat16 autocast (GPUs with bf16 tensor cores; CPUs with AMX: ~4x faster "
-                    "than fp32)")
+                    help="bfloat16 autocast (GPUs with bf16 tensor cores; CPUs with AMX or AVX-512: ~2-4x "
+                    "faster than fp32; on AVX2-only CPUs ~25x slower)")
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
     if a.revive and not a.init:
@@ -158,6 +163,12 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(a.threads)
     auto = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(auto if a.device == "auto" else a.device)
+    if a.amp and device.type == "cpu":
+        cap = torch.backends.cpu.get_cpu_capability()
+        if not cap.startswith("AVX512") and cap != "AMX":
+            # measured 2026-12-03 on an AVX2-only AMD EPYC VM: 66 s a step with --amp, 2.4 s without
+            print(f"warning: this CPU ({cap}) has no native bfloat16; --amp runs about 25x slower "
+                  "than fp32 here: leave it off", flush=True)
     widths = tuple(int(v) for v in a.widths.split(","))
     model = build_model(a.arch, widths).to(device)
     if device.type == "cuda":
@@ -216,7 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     aug = BatchAugmenter(pool, real_imgs, real_masks, crop=a.crop, real_fraction=a.real_fraction,
                          focus_fraction=a.focus_fraction, device=device, seed=a.seed * 1_000_003 + step,
                          labelled_images=lab_imgs, labelled_targets=lab_tgts,
-                         labelled_fraction=a.labelled_fraction)
+                         labelled_fraction=a.labelled_fraction,
+                         hard=load_hard(a.hard_focus, len(pool.frames)) if a.hard_focus else None,
+                         hard_weight=a.hard_weight)
     (out / "config.json").write_text(json.dumps({**vars(a), "widths": widths, "device": str(device),
                                                  "pool_frames": len(pool.frames), "revived": revived,
                                                  "real_train_ids": real_train_ids,

@@ -445,6 +445,62 @@ def test_focus_crops():
         BatchAugmenter(pool, [], [], focus_fraction=1.5)
 
 
+def test_hard_focus_cells_and_crops(tmp_path):
+    """Device disagreements (not vessel/background ones) are hard cells; focused crops then show them."""
+    from segmentation_onnx.hard_focus import device_errors, hard_grid, load_hard
+
+    truth = np.zeros((1, 16, 16), np.uint8)
+    pred = np.zeros_like(truth)
+    truth[0, 1, 1] = 2
+    pred[0, 1, 1] = 1  # catheter labelled vessel: hard
+    truth[0, 5, 9] = 1  # vessel missed: not a device error
+    pred[0, 14, 3] = 4  # lead where there is none: hard
+    truth[0, 9, 9] = pred[0, 9, 9] = 3  # balloon right: not
+    err = device_errors(truth, pred)
+    assert sorted(map(tuple, np.argwhere(err[0]).tolist())) == [(1, 1), (14, 3)]
+    g = hard_grid(err, min_width=1)
+    assert g.shape == (1, 4, 4) and sorted(map(tuple, np.argwhere(g[0]).tolist())) == [(0, 0), (3, 0)]
+    assert not hard_grid(err).any()  # single pixels are no hard cells by default
+    # a tube drawn a pixel too wide is no hard cell; a stretch of it labelled vessel is
+    wide = np.zeros((1, 32, 32), bool)
+    wide[0, 4:28, 10] = True  # 1 px sliver along a catheter's edge
+    wide[0, 20:26, 20:26] = True  # 6 x 6 block
+    assert sorted(map(tuple, np.argwhere(hard_grid(wide)[0]).tolist())) == [(5, 5), (5, 6), (6, 5), (6, 6)]
+    assert hard_grid(np.ones((1, 5, 9), bool)).shape == (1, 2, 3)
+    with pytest.raises(ValueError, match="shape"):
+        device_errors(truth, pred[:, :8])
+    np.savez(tmp_path / "h.npz", bits=np.packbits(g, axis=-1), cols=g.shape[-1])
+    assert np.array_equal(load_hard(tmp_path / "h.npz", 1), g)
+    with pytest.raises(ValueError, match="1 frames, the pool 2"):
+        load_hard(tmp_path / "h.npz", 2)
+
+    pytest.importorskip("torch")
+    from segmentation_onnx.data import Pool
+    from segmentation_onnx.torch_aug import BatchAugmenter
+
+    # a frame with a vessel-adjacent catheter piece (focus) at the top left and a lone lead piece at the
+    # bottom right that no focus rule picks: marked hard, the focused crops show it
+    frame = np.full((256, 256), 200, np.uint8)
+    labels = np.zeros((256, 256), np.uint8)
+    labels[10:30, 10:14] = 1
+    labels[10:30, 16:20] = 2
+    labels[236:248, 236:240] = 4
+    frame[labels > 0] = 60
+    pool = Pool([frame], [labels], [8])
+    hard = np.zeros((1, 64, 64), bool)
+    hard[0, 59:62, 59] = True
+    share = []
+    for h in (None, hard):
+        aug = BatchAugmenter(pool, [], [], crop=32, focus_fraction=1.0, seed=5, hard=h, hard_weight=20.0)
+        _, t = aug.batch(64)
+        share.append(float((t == 4).flatten(1).any(1).float().mean()))
+    assert share[0] < 0.2 and share[1] > 0.6, share
+    with pytest.raises(ValueError, match="focus_fraction"):
+        BatchAugmenter(pool, [], [], hard=hard)
+    with pytest.raises(ValueError, match="does not fit"):
+        BatchAugmenter(pool, [], [], focus_fraction=0.5, hard=hard[:, :8])
+
+
 def _find_offset(z: np.ndarray, crop: np.ndarray) -> tuple[int, int] | None:
     """Top-left (x, y) where ``crop`` sits in ``z`` (exact match up to float noise)."""
     res = cv2.matchTemplate(z, crop, cv2.TM_SQDIFF)
