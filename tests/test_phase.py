@@ -96,6 +96,30 @@ def test_spur_of_a_catheter_crossing_the_field_is_no_tip():
     assert np.linalg.norm(tip - [128.0, 197.5]) < 2.0
 
 
+def test_catheter_leaving_the_field_as_vessel_is_no_tip():
+    # A catheter shaft comes down from the top edge (column 200); the segmentation labels its last
+    # 20 px before the bottom edge vessel, so its skeleton ends in the field, 230 px along it from
+    # the border. The guiding catheter enters at the left edge and ends at the ostium (100, 120),
+    # 100 px from its border: its end, not the shaft's, is the tip.
+    v, c = LABELS["vessel"], LABELS["catheter"]
+    lab = np.zeros((1, 256, 256), np.uint8)
+    cv2.line(lab[0], (0, 120), (100, 120), c, 5)
+    cv2.line(lab[0], (103, 121), (180, 180), v, 7)
+    lab[0, :236, 198:203] = c
+    lab[0, 236:, 198:203] = v
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [100.0, 120.0]) < 4.0
+    # A catheter that ends 20 px before the edge over background keeps its end as the tip.
+    lab[0, 236:, 198:203] = 0
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [200.0, 233.5]) < 2.0
+    # ... and so does one that runs into a vessel turning away from the edge: the gap ahead of
+    # its end is background.
+    cv2.line(lab[0], (200, 237), (250, 242), v, 5)
+    tip = find_keypoints(lab, "catheter").points_px[0]
+    assert np.linalg.norm(tip - [200.0, 233.5]) < 3.0
+
+
 def test_catheter_whose_filled_shaft_is_taken_for_vessel_keeps_its_tip():
     # A guiding catheter comes up from the bottom edge and leaves at the top (its ascending
     # shaft, column 60); its descending part comes back down from the top edge (column 30),

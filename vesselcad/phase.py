@@ -306,6 +306,10 @@ _SPUR_RADII = 2.5
 # A device piece whose border contacts span more than this share of the image's longer side
 # crosses the field (enters and leaves it).
 _CROSSING_SHARE = 0.25
+# A free end that points at the image's edge at most this share of its longer side away, across
+# a mostly labelled gap, is where the device leaves the image (see _edge_exits), not its tip.
+_EXIT_SHARE = 0.1
+_EXIT_LABELLED = 0.8
 
 
 def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int,
@@ -316,7 +320,9 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int,
     where the device leaves the image (its edge, inside the dark ``margins``
     top, bottom, left, right); it is refined by following the end direction to
     the mask boundary and stepping back one local radius (the device ends in a
-    round cap).
+    round cap). Ends that face another across a labelled gap (a cut,
+    :func:`_breaks`) or the image's edge (the device leaves the field as
+    another class, :func:`_edge_exits`) are no tips.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components, dijkstra
@@ -390,6 +396,13 @@ def _tip(frame: np.ndarray, value: int, border: int, min_length_px: int,
     i, j, cut_free = _breaks(free, frame, xy, graph)
     cut = np.zeros(n, bool)
     cut[free[cut_free]] = True
+    # A free end pointing at the image's edge across pixels of another class is where the device
+    # leaves the image (its last centimetres labelled vessel): a border point, not a tip.
+    exits = free[_edge_exits(free, frame, xy, graph, margins) & ~cut_free]
+    if exits.size:
+        at_border = at_border.copy()
+        at_border[exits] = True
+        cut[exits] = True
     bridge = np.linalg.norm(xy[free[i]] - xy[free[j]], axis=1)
     on = np.r_[own[src] & own[dst], np.zeros(i.size, bool)]  # edges on this device; bridges are not
     src, dst, wts = np.r_[src, free[i]], np.r_[dst, free[j]], np.r_[wts, bridge]
@@ -561,6 +574,47 @@ def _end_directions(ends: np.ndarray, xy: np.ndarray, graph: Any, back: int = 10
         d = xy[e] - xy[cur]
         norm = np.linalg.norm(d)
         out[k] = d / norm if norm > 0 else 0.0
+    return out
+
+
+def _edge_exits(ends: np.ndarray, frame: np.ndarray, xy: np.ndarray, graph: Any,
+                margins: Sequence[int]) -> np.ndarray:
+    """Free ends where a device leaves the image through pixels given to another class.
+
+    A segmentation model often labels a catheter's last centimetres before the
+    image edge vessel (phantom rca view A: the shaft crossing the field ends
+    35 px above the bottom edge); its free end there was taken for the tip,
+    300 px from it. Such an end points at the image's edge (inside the dark
+    ``margins`` top, bottom, left, right): the ray along its end direction
+    leaves the field within ``_EXIT_SHARE`` of the image's longer side, and
+    that stretch is mostly labelled (``_EXIT_LABELLED``, not background). A
+    device that simply ends near the edge leaves background there.
+
+    Returns
+    -------
+    bool array
+        Per end: the device leaves the image there.
+    """
+    out = np.zeros(ends.size, bool)
+    if ends.size == 0:
+        return out
+    h, w = frame.shape
+    top, bottom, left, right = (int(m) for m in margins)
+    lo = np.array([left, top], float) - 0.5
+    hi = np.array([w - right, h - bottom], float) - 0.5
+    d = _end_directions(ends, xy, graph)
+    p = xy[ends]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d > 0, (hi - p) / d, np.where(d < 0, (lo - p) / d, np.inf)).min(axis=1)
+    reach = _EXIT_SHARE * max(h, w)
+    near = np.nonzero((np.abs(d).sum(axis=1) > 0) & (t <= reach))[0]
+    if near.size == 0:
+        return out
+    # labelled within a pixel of the ray: a skeleton's end direction is off by a few degrees
+    labelled = ndimage.maximum_filter(frame != 0, size=3)
+    for k in near:  # a handful per frame
+        q = np.clip(p[k] + max(t[k] - 0.5, 0.0) * d[k], 0, [w - 1, h - 1])
+        out[k] = _labelled_share(labelled, p[k], q) >= _EXIT_LABELLED
     return out
 
 
