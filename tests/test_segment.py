@@ -409,10 +409,18 @@ def test_training_batches_with_hand_labelled_real_images(phantom_frames):
         BatchAugmenter(pool, [], [], labelled_fraction=2.0)
 
 
+def _one_frame_pool(labels: np.ndarray):
+    """A pool of one 8-bit frame: bright background, labelled pixels dark."""
+    from segmentation_onnx.data import Pool
+
+    frame = np.full(labels.shape, 200, np.uint8)
+    frame[labels > 0] = 60
+    return Pool([frame], [labels], [8])
+
+
 def test_focus_crops():
     """Catheter pixels within 12 px of a vessel and balloons are focus pixels; focused crops show them."""
     torch = pytest.importorskip("torch")
-    from segmentation_onnx.data import Pool
     from segmentation_onnx.torch_aug import FOCUS_RADIUS, BatchAugmenter, focus_grid
 
     assert FOCUS_RADIUS == 12
@@ -428,13 +436,11 @@ def test_focus_crops():
     assert sorted(map(tuple, g[0].nonzero().tolist())) == [(7, 10), (10, 10)]
     assert sorted(map(tuple, g[1].nonzero().tolist())) == [(0, 15), (7, 10), (10, 10)]
     # a 256 px frame with a short catheter piece next to a vessel far from the rest of the foreground
-    frame = np.full((256, 256), 200, np.uint8)
     labels = np.zeros((256, 256), np.uint8)
     labels[20:200, 200:206] = 1
     labels[240:252, 8:12] = 1
     labels[236:240, 14:18] = 2
-    frame[labels > 0] = 60
-    pool = Pool([frame], [labels], [8])
+    pool = _one_frame_pool(labels)
     share = []
     for f in (0.0, 1.0):
         aug = BatchAugmenter(pool, [], [], crop=32, focus_fraction=f, seed=3)
@@ -475,18 +481,15 @@ def test_hard_focus_cells_and_crops(tmp_path):
         load_hard(tmp_path / "h.npz", 2)
 
     pytest.importorskip("torch")
-    from segmentation_onnx.data import Pool
     from segmentation_onnx.torch_aug import BatchAugmenter
 
     # a frame with a vessel-adjacent catheter piece (focus) at the top left and a lone lead piece at the
     # bottom right that no focus rule picks: marked hard, the focused crops show it
-    frame = np.full((256, 256), 200, np.uint8)
     labels = np.zeros((256, 256), np.uint8)
     labels[10:30, 10:14] = 1
     labels[10:30, 16:20] = 2
     labels[236:248, 236:240] = 4
-    frame[labels > 0] = 60
-    pool = Pool([frame], [labels], [8])
+    pool = _one_frame_pool(labels)
     hard = np.zeros((1, 64, 64), bool)
     hard[0, 59:62, 59] = True
     share = []
