@@ -155,7 +155,7 @@ class BatchAugmenter:
         ``focus_fraction`` > 0 they join the focus pixels, each weighing
         ``hard_weight`` times a focus pixel when a focus centre is drawn.
     hard_weight : float
-        Weight of a hard cell against a focus pixel (1).
+        Weight of a hard cell against a focus pixel (default 4).
     """
 
     def __init__(self, pool: Pool, real_images: list[np.ndarray], real_masks: list[np.ndarray], *,
