@@ -509,3 +509,38 @@ def _find_offset(z: np.ndarray, crop: np.ndarray) -> tuple[int, int] | None:
     res = cv2.matchTemplate(z, crop, cv2.TM_SQDIFF)
     _, _, (x, y), _ = cv2.minMaxLoc(res)
     return (x, y) if np.abs(z[y:y + crop.shape[0], x:x + crop.shape[1]] - crop).max() < 1e-4 else None
+
+
+def test_soup_averages_two_checkpoints_of_one_network(tmp_path):
+    """A soup is the weighted mean of two checkpoints (integers from the second); other networks refused."""
+    torch = pytest.importorskip("torch")
+    from segmentation_onnx.model import build_model
+    from segmentation_onnx.soup import main, soup
+
+    widths = (4, 8, 8, 8, 8)
+    cks = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        m = build_model("gated", widths)
+        for bn in (x for x in m.modules() if isinstance(x, torch.nn.BatchNorm2d)):
+            bn.num_batches_tracked.fill_(10 * seed + 3)
+        cks.append({"model": m.state_dict(), "arch": "gated", "widths": widths})
+    out = soup(cks[0], cks[1], 0.25)["model"]
+    for k, v in out.items():
+        a, b = cks[0]["model"][k], cks[1]["model"][k]
+        if v.is_floating_point():
+            assert torch.allclose(v, 0.75 * a + 0.25 * b, atol=1e-7), k
+        else:
+            assert torch.equal(v, b), k
+    m = build_model("gated", widths)
+    m.load_state_dict(out)  # loads as the same network
+    with pytest.raises(ValueError, match="different networks"):
+        soup(cks[0], {**cks[1], "widths": (4, 8, 8, 8, 16)})
+    with pytest.raises(ValueError, match="weight"):
+        soup(cks[0], cks[1], 1.5)
+    for i, ck in enumerate(cks):
+        torch.save(ck, tmp_path / f"{i}.pt")
+    assert main([str(tmp_path / "0.pt"), str(tmp_path / "1.pt"), "--out", str(tmp_path / "s.pt")]) == 0
+    s = torch.load(tmp_path / "s.pt")["model"]
+    k = next(k for k in s if s[k].is_floating_point())
+    assert torch.allclose(s[k], 0.5 * (cks[0]["model"][k] + cks[1]["model"][k]), atol=1e-7)
