@@ -2,14 +2,14 @@
 
 Fine-tuning rounds that trade one class or one domain for another can be
 blended by averaging their weights (Wortsman et al., 2022, "Model soups");
-the model card's rounds 8, 11 and 13 measure such averages. Floating-point
+the model card's rounds 8, 11 and 13 measure such averages (the shipped
+weights are the equal average of rounds 12 and 13). Floating-point
 tensors (weights, biases, batch-norm statistics) are averaged; integer ones
 (``num_batches_tracked``) are taken from the second checkpoint.
 
 Usage::
 
-    python -m segmentation_onnx.soup segmentation_onnx/weights/gated_unet.pt \\
-        segmentation_onnx/weights/gated_unet_round13.pt --out soup.pt [--weight 0.5]
+    python -m segmentation_onnx.soup a.pt b.pt --out soup.pt [--weight 0.5]
     python -m segmentation_onnx.export soup.pt soup.onnx --int8 soup_int8.onnx
 """
 
