@@ -52,7 +52,8 @@ STAGES = ("segmentation", "phase", "graphs", "refinement", "matching", "centreli
 
 
 def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
-             segmenter: vc.Segmenter | None = None, tta: str = "chosen") -> dict:
+             segmenter: vc.Segmenter | None = None, tta: str = "chosen",
+             frame_search: str = "coarse") -> dict:
     base, _, option = variant.partition("/")
     mis = 1.5 if base.endswith("1.5deg") else 0.0
     case = generate_case(seed, kind, n_frames, miscalibration_deg=mis)
@@ -66,6 +67,7 @@ def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             rec = reconstruct(paths["run_a"], paths["run_b"], labels=labels, model=segmenter, tta=tta,
+                              frame_search=frame_search,
                               objects=objects)
             rec.write(d / "out")
     except vc.VesselcadError as exc:
@@ -87,6 +89,10 @@ def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
         total = sum(b.length_mm for b in rec.tree)
         row["in_solid"] = sum(b.length_mm for b in rec.tree if b.name in kept) / max(total, 1e-9)
     row["refined"] = bool(rec.refinement is not None and rec.refinement.applied)
+    # frames the model labelled for the phase matching (all of them without the coarse search)
+    n_all = rec.phase.fill_a.size + rec.phase.fill_b.size
+    row["labelled_share"] = (1.0 if rec.phase.labelled_a is None
+                             else float(rec.phase.labelled_a.sum() + rec.phase.labelled_b.sum()) / n_all)
     row["status"] = "ok"
     return row
 
@@ -132,6 +138,9 @@ def main() -> None:
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--model", metavar="ONNX", help="segmentation model of the 'model' variant: a file, "
                     "'fp32' or 'int8' (default: the bundled fp32 model)")
+    ap.add_argument("--frame-search", choices=["coarse", "all"], default="coarse",
+                    help="model variant: frames labelled for the phase matching, coarse to fine (default) or "
+                    "all (reconstruct(frame_search=...))")
     ap.add_argument("--tta", choices=["chosen", "all", "none"], default="chosen",
                     help="model variant: mirror test-time augmentation of the chosen frames (default), of "
                     "every frame, or none (reconstruct(tta=...))")
@@ -149,7 +158,8 @@ def main() -> None:
             seed, kind = args.first_seed + i, KINDS[i % 3]
             n_frames = 40 + (i * 7) % 21
             for v in variants:
-                r = run_case(seed, kind, n_frames, v, Path(tmp), segmenter, tta=args.tta)
+                r = run_case(seed, kind, n_frames, v, Path(tmp), segmenter, tta=args.tta,
+                             frame_search=args.frame_search)
                 rows.append(r)
                 t = r.get("truth", {})
                 print(f"seed {seed} {kind} {n_frames} frames {v}: {r['status'][:80]}; 3D mean "
@@ -157,10 +167,16 @@ def main() -> None:
                       f"ostium {t.get('ostium_mm', float('nan')):.2f} mm, "
                       f"{r['seconds']:.1f} s", file=sys.stderr, flush=True)
     print(f"# end to end: {args.cases} phantom cases x {len(variants)} variants, 512², unsynchronized "
-          f"40-60 frames, model variant with mirror TTA of {args.tta} frames")
+          f"40-60 frames, model variant with mirror TTA of {args.tta} frames, "
+          f"frame search {args.frame_search}")
     print(f"# {platform.platform()}, python {platform.python_version()}, {os.cpu_count()} CPUs, "
           f"{time.time() - t0:.0f} s total\n")
     print(table(rows))
+    shares = [r["labelled_share"] for r in rows
+              if r.get("status") == "ok" and r["variant"].startswith("model")]
+    if shares:
+        print(f"\nFrames the model labelled for the phase matching (model variants): {np.mean(shares):.1%} "
+              f"(min {min(shares):.1%}, max {max(shares):.1%})")
     print("\nPer anatomy (3D mean mm / coverage):\n")
     print("| variant | " + " | ".join(KINDS) + " |\n|---|" + "---|" * len(KINDS))
     for v in variants:

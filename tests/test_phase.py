@@ -224,6 +224,36 @@ def test_frames_without_the_object_are_skipped(sync_cs):
     assert np.all(np.isnan(m.keypoints_a["balloon"][[3, 7, 8]]))
 
 
+def test_frames_not_labelled_are_never_chosen(sync_cs):
+    # A coarse-to-fine search labels only some frames: the others (all background) have no key
+    # point, are never chosen, and count neither in the fill nor in the object's presence.
+    case, run_a, run_b = sync_cs
+    known_a = np.arange(16) % 2 == 1
+    known_b = np.arange(16) % 4 != 0
+    la = np.where(known_a[:, None, None], case.run_a.labels, 0).astype(np.uint8)
+    lb = np.where(known_b[:, None, None], case.run_b.labels, 0).astype(np.uint8)
+    m = match_phase(run_a, run_b, la, lb, labelled_a=known_a, labelled_b=known_b, vessel_weight=0.0)
+    assert m.objects == ["balloon"]
+    assert known_a[m.frame_a] and known_b[m.frame_b]
+    assert m.frame_a == m.frame_b and m.error_mm < 0.05  # synchronized runs: the diagonal
+    assert np.all(np.isnan(m.keypoints_a["balloon"][~known_a]))
+    assert np.all(m.fill_a[~known_a] == 0) and m.fill_a[known_a].max() == 1.0
+    area = (case.run_a.labels == LABELS["vessel"]).sum(axis=(1, 2))
+    assert m.fill_a[m.frame_a] == pytest.approx(area[m.frame_a] / area[known_a].max())
+    assert not (m.eligible_a & ~known_a).any()
+    d = m.to_dict()
+    assert (d["labelled_frames_a"], d["labelled_frames_b"]) == (8, 12)
+    every = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels)
+    assert every.to_dict()["labelled_frames_a"] is None
+    # the vessel term too is only measured on labelled pairs
+    m = match_phase(run_a, run_b, la, lb, labelled_a=known_a, labelled_b=known_b)
+    assert np.isnan(m.consistency[~known_a]).all()
+    assert np.isfinite(m.consistency[np.ix_(known_a, known_b)]).all()
+    for bad in (known_a[:5], np.zeros(16, bool), np.ones(16)):
+        with pytest.raises(vc.ArgumentError, match="labelled_a"):
+            match_phase(run_a, run_b, la, lb, labelled_a=bad)
+
+
 def test_no_object_gives_a_clear_error(sync_cs):
     case, run_a, run_b = sync_cs
     only_vessels_a = np.where(case.run_a.labels == LABELS["vessel"], 1, 0).astype(np.uint8)

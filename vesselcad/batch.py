@@ -54,7 +54,7 @@ SUMMARY_COLUMNS = (
 _MANIFEST_ID = ("case", "id", "case_id")
 # reconstruct()'s defaults, so that the API and the CLI fingerprint the same options alike
 _DEFAULTS = {"method": "nurbs", "model": None, "objects": "auto", "refine": True, "solid": True,
-             "tta": "chosen"}
+             "tta": "chosen", "frame_search": "coarse"}
 _RECORD = "case.json"
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 

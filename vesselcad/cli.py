@@ -68,7 +68,7 @@ def _print_reconstruction(rec, paths: dict, out: Path) -> None:
 def _reconstruct_args(args: argparse.Namespace) -> dict:
     return {"method": args.method, "frames": args.frames, "model": args.model, "objects": args.objects,
             "refine": not args.no_refine, "solid": not args.no_solid, "progress": not args.quiet,
-            "tta": args.tta}
+            "tta": args.tta, "frame_search": args.frame_search}
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -305,6 +305,9 @@ def _parser() -> argparse.ArgumentParser:
                        help="mirror test-time augmentation of the segmentation (the mean over the frame "
                        "and its three mirror images): the two chosen frames (default), every frame (~4x "
                        "the segmentation time), or none")
+        q.add_argument("--frame-search", choices=["coarse", "all"], default="coarse",
+                       help="which frames the model labels for the phase matching: coarse to fine, about "
+                       "half of them (default), or all")
         q.add_argument("--no-refine", action="store_true", help="keep the files' geometry as it is")
         q.add_argument("--no-solid", action="store_true", help="centrelines only, no CAD solid")
         q.add_argument("--no-html", action="store_true", help="skip report.html")

@@ -124,6 +124,9 @@ class PhaseMatch:
         difference of vessel crossings per epipolar line), None when not used.
     vessel_weight : float
         Millimetres added to a pair's score per unit of ``consistency`` (0: not used).
+    labelled_a, labelled_b : numpy.ndarray of bool, or None
+        The frames whose labels were given (``match_phase``'s ``labelled_a``,
+        ``labelled_b``); None: all.
     """
 
     frame_a: int
@@ -149,6 +152,8 @@ class PhaseMatch:
     ecg: bool = False
     consistency: np.ndarray | None = None
     vessel_weight: float = 0.0
+    labelled_a: np.ndarray | None = None
+    labelled_b: np.ndarray | None = None
 
     @property
     def basis(self) -> str:
@@ -173,6 +178,8 @@ class PhaseMatch:
             "fill": None if self.fill_a is None else [round(float(self.fill_a[self.frame_a]), 3),
                                                       round(float(self.fill_b[self.frame_b]), 3)],
             "window": self.window, "ecg": self.ecg,
+            "labelled_frames_a": None if self.labelled_a is None else int(self.labelled_a.sum()),
+            "labelled_frames_b": None if self.labelled_b is None else int(self.labelled_b.sum()),
             "vessel_consistency": None if self.consistency is None
             else round(float(self.consistency[self.frame_a, self.frame_b]), 4),
             "vessel_weight": self.vessel_weight,
@@ -801,11 +808,16 @@ def diagonal_mean(matrix: np.ndarray, window: int) -> np.ndarray:
     return np.where((valid.sum(axis=0) >= window + 1) & np.isfinite(matrix), out, np.nan)
 
 
-def _fill(labels: np.ndarray) -> np.ndarray:
-    """Vessel area per frame as a share of the run's largest (1 everywhere without vessels)."""
+def _fill(labels: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:
+    """Vessel area per frame as a share of the run's largest (1 everywhere without vessels).
+
+    With ``known`` (the labelled frames), the others get 0.
+    """
     area = (labels == _VESSEL).sum(axis=(1, 2)).astype(float)
+    if known is not None:
+        area[~known] = 0.0
     if area.max() == 0:
-        return np.ones(labels.shape[0])  # no vessel class: nothing to restrict on
+        return np.ones(labels.shape[0]) if known is None else known.astype(float)
     return area / area.max()
 
 
@@ -963,6 +975,8 @@ def match_phase(
     vessel_weight: float = 10.0,
     pair: tuple[int, int] | None = None,
     window: int | None = None,
+    labelled_a: Any = None,
+    labelled_b: Any = None,
 ) -> PhaseMatch:
     """Choose the frame pair of two runs at the same motion phase (paper §2.3).
 
@@ -1026,6 +1040,11 @@ def match_phase(
         ``window=0`` is the paper's choice by the single pair's error. None
         (default): 0 when the vessel term or the ECG restriction applies (they
         fix the phase along the whole tree, resp. the cardiac phase), else 4.
+    labelled_a, labelled_b : array_like of bool, shape (N,), optional
+        The frames whose labels were computed, when only some were (a
+        coarse-to-fine search, ``reconstruct``): the others are never chosen,
+        have no key point and count neither in the run's largest vessel area
+        nor in an object's presence. Default: every frame.
 
     Returns
     -------
@@ -1044,6 +1063,15 @@ def match_phase(
         if lab.shape != run.frames.shape:
             raise ArgumentError(f"{name}: shape {lab.shape} does not match the run's frames "
                                 f"{run.frames.shape}")
+    known = []
+    for name, mask, n_run in (("labelled_a", labelled_a, la.shape[0]),
+                              ("labelled_b", labelled_b, lb.shape[0])):
+        k = np.ones(n_run, bool) if mask is None else np.asarray(mask)
+        if k.shape != (n_run,) or k.dtype != bool or not k.any():
+            raise ArgumentError(f"{name}: expected None or {n_run} booleans with at least one True, got "
+                                f"{mask!r:.60}")
+        known.append(k)
+    known_a, known_b = known
     if window is not None and (isinstance(window, bool) or not isinstance(window, (int, np.integer))
                                or window < 0):
         raise ArgumentError(f"window: expected None or a non-negative integer, got {window!r}")
@@ -1074,17 +1102,17 @@ def match_phase(
     if bad or (not wanted and objects != "vessels"):
         raise ArgumentError(f"objects: expected 'auto', 'vessels' or some of {list(OBJECTS)}, "
                             f"got {objects!r}")
-    has_vessels = bool((la == _VESSEL).any() and (lb == _VESSEL).any())
+    has_vessels = bool((la[known_a] == _VESSEL).any() and (lb[known_b] == _VESSEL).any())
 
     warnings_: list[str] = []
     tracks_a, tracks_b = {}, {}
     for obj in wanted:
-        present_a = (la == OBJECTS[obj]).any(axis=(1, 2)).mean()
-        present_b = (lb == OBJECTS[obj]).any(axis=(1, 2)).mean()
+        present_a = (la[known_a] == OBJECTS[obj]).any(axis=(1, 2)).mean()
+        present_b = (lb[known_b] == OBJECTS[obj]).any(axis=(1, 2)).mean()
         if objects == "auto" and (present_a < 0.25 or present_b < 0.25):
             continue
-        ta = find_keypoints(la, obj, frames=run_a.frames)
-        tb = find_keypoints(lb, obj, frames=run_b.frames)
+        ta = _track_known(la, obj, run_a.frames, known_a)
+        tb = _track_known(lb, obj, run_b.frames, known_b)
         if ta.found.any() and tb.found.any():
             tracks_a[obj], tracks_b[obj] = ta, tb
             if objects == "auto":
@@ -1115,8 +1143,10 @@ def match_phase(
         matrix = mats[0] if len(mats) == 1 else np.max(np.stack(mats), axis=0)
         valid = np.isfinite(matrix)
 
-    fill_a, fill_b = _fill(la), _fill(lb)
+    fill_a, fill_b = _fill(la, known_a), _fill(lb, known_b)
     elig_a, elig_b = fill_a >= min_contrast, fill_b >= min_contrast
+    elig_a &= known_a
+    elig_b &= known_b
     allowed = elig_a[:, None] & elig_b[None, :] & valid
     full_a, full_b = fill_a >= prefer_fill, fill_b >= prefer_fill
     if prefer_fill <= 1.0 and (allowed & full_a[:, None] & full_b[None, :]).any():
@@ -1125,7 +1155,12 @@ def match_phase(
     consistency = None
     if vessel_weight > 0.0 and has_vessels:
         try:
-            consistency = epipolar_consistency(run_a.view, la, run_b.view, lb)
+            if known_a.all() and known_b.all():
+                consistency = epipolar_consistency(run_a.view, la, run_b.view, lb)
+            else:  # only the labelled frames (the others cannot be chosen)
+                consistency = np.full((n_a, n_b), np.nan)
+                consistency[np.ix_(known_a, known_b)] = epipolar_consistency(
+                    run_a.view, la[known_a], run_b.view, lb[known_b])
         except ArgumentError as exc:
             if vessels_only:
                 raise PhaseError(f"run_a/run_b: no stationary object to match, and the vessels' epipolar "
@@ -1203,7 +1238,23 @@ def match_phase(
         margin_mm=margin, confidence=confidence, point_mm=point_mm, warnings=warnings_,
         fill_a=fill_a, fill_b=fill_b, window=window, ecg=ecg_diff is not None,
         consistency=consistency, vessel_weight=float(vessel_weight) if consistency is not None else 0.0,
+        labelled_a=None if labelled_a is None else known_a.copy(),
+        labelled_b=None if labelled_b is None else known_b.copy(),
     )
+
+
+def _track_known(labels: np.ndarray, obj: str, frames: np.ndarray, known: np.ndarray) -> KeyPointTrack:
+    """Key points of ``obj`` in the labelled frames only (NaN in the others)."""
+    if known.all():
+        return find_keypoints(labels, obj, frames=frames)
+    idx = np.flatnonzero(known)
+    t = find_keypoints(labels[idx], obj, frames=frames[idx])
+    pts = np.full((labels.shape[0], 2), np.nan)
+    pts[idx] = t.points_px
+    reason = ["not labelled (coarse-to-fine search)"] * labels.shape[0]
+    for k, i in enumerate(idx):
+        reason[i] = t.reason[k]
+    return KeyPointTrack(obj, pts, reason)
 
 
 def plot_error_matrix(match: PhaseMatch, path: str | os.PathLike, *, title: str = "") -> Path:
@@ -1221,7 +1272,8 @@ def plot_error_matrix(match: PhaseMatch, path: str | os.PathLike, *, title: str 
     if match.objects:
         panels.append((match.matrix, "reconstruction error (mm)",
                        title or f"motion phase error matrix ({', '.join(match.objects)}); "
-                       "grey: not eligible"))
+                       "grey: not eligible" + ("" if match.labelled_a is None and match.labelled_b is None
+                                               else ", blank: no key point or frame not labelled")))
     if match.consistency is not None:
         panels.append((match.consistency, "vessel crossings differing per epipolar line",
                        (title + "\n" if title and not match.objects else "")

@@ -68,6 +68,25 @@ TTA_MODES = ("chosen", "all", "none")
 #: point) are 5 px or more off in most frames, so the vessels must count more than with true
 #: labels (``match_phase``'s default of 10, used for labels given to ``reconstruct``); docs/phase.md.
 MODEL_VESSEL_WEIGHT_MM = 30.0
+#: ``reconstruct(frame_search=...)``: how many frames the model labels for the phase matching.
+FRAME_SEARCH_MODES = ("coarse", "all")
+#: The coarse-to-fine frame search (:class:`_FrameLabeller`) runs on runs of at least this many
+#: frames at least ``COARSE_MIN_FPS`` frames per second; shorter or slower runs are labelled whole.
+COARSE_MIN_FRAMES = 24
+COARSE_MIN_FPS = 12.0
+#: It first labels every ``COARSE_PROBE``-th frame, then every ``COARSE_STRIDE``-th frame within
+#: ``COARSE_PROBE - 1`` frames of those whose vessel area is at least ``COARSE_KEEP`` of the
+#: largest (the phase matching only chooses frames filled to 0.9 of the run's largest when it
+#: can: ``match_phase``'s ``prefer_fill``), then the neighbours of the ``COARSE_TOP`` best pairs
+#: and every frame within ``COARSE_REACH`` frames of the best one, until nothing is added.
+#: A stride of 2 labelled 61 % instead of 76 % of the frames but chose another pair in 5 of 48
+#: phantom cases (one of them 3.4 mm worse; docs/phase.md), so every frame near the filled
+#: probes is labelled.
+COARSE_PROBE = 4
+COARSE_STRIDE = 1
+COARSE_KEEP = 0.75
+COARSE_TOP = 12
+COARSE_REACH = 2
 
 
 class ReconstructionError(VesselcadError, RuntimeError):
@@ -200,7 +219,7 @@ class Reconstruction:
         if self.solid is not None:
             chk = self.solid.check()
             solid = {"valid": bool(chk["valid"]), "watertight": bool(chk["watertight"]),
-                     "solids": int(chk.get("solids", 1)), "volume_mm3": round(float(self.solid.volume), 3),
+                     "solids": int(chk.get("solids", 1)), "volume_mm3": round(float(chk["volume_mm3"]), 3),
                      "failed": {str(k): v for k, v in self.solid.failed.items()}}
         phase = self.phase.to_dict()
         return {
@@ -539,6 +558,106 @@ def _moved_start(points: np.ndarray, target: np.ndarray) -> np.ndarray:
     return points + w[:, None] * shift
 
 
+class _FrameLabeller:
+    """Labels of a run's frames, computed by the model only for the frames asked for.
+
+    The coarse-to-fine frame search of ``reconstruct``: the phase matching needs
+    the labels of the frames it may choose, and it chooses among the frames
+    filled with contrast (``match_phase``'s ``prefer_fill``). So every
+    ``COARSE_PROBE``-th frame is labelled first (:meth:`coarse`), then every
+    ``COARSE_STRIDE``-th frame near those whose vessel area is at least
+    ``COARSE_KEEP`` of their largest; then (:meth:`neighbours`, :meth:`label`)
+    the frames around the pairs the phase matching picks (``_choose_pair``).
+    """
+
+    def __init__(self, seg: Segmenter, run: XARun, progress: bool) -> None:
+        self.seg, self.run, self.progress = seg, run, progress
+        self.labels = np.zeros(run.frames.shape, np.uint8)
+        self.known = np.zeros(run.n_frames, bool)
+
+    @property
+    def complete(self) -> bool:
+        return bool(self.known.all())
+
+    def label(self, idx: Any) -> int:
+        """Label these frames (those not labelled yet); how many were new."""
+        idx = np.unique(np.asarray(idx, dtype=np.int64))
+        idx = idx[(idx >= 0) & (idx < self.run.n_frames)]
+        idx = idx[~self.known[idx]]
+        if len(idx):
+            self.labels[idx] = self.seg(self.run.frames[idx], progress=self.progress, tta=False)
+            self.known[idx] = True
+        return len(idx)
+
+    def coarse(self, extra: int | None = None) -> None:
+        """The coarse pass (all frames for short or slow runs)."""
+        n = self.run.n_frames
+        dt = np.diff(self.run.frame_times_ms)
+        fps = 1000.0 / float(np.median(dt)) if len(dt) and np.median(dt) > 0 else 0.0
+        if n < COARSE_MIN_FRAMES or fps < COARSE_MIN_FPS:
+            self.label(np.arange(n))
+            return
+        step = COARSE_PROBE
+        probes = np.unique(np.r_[np.arange(0, n, step), n - 1,
+                                 [] if extra is None else [extra]]).astype(np.int64)
+        self.label(probes)
+        area = (self.labels[probes] == 1).sum(axis=(1, 2))
+        if area.max() == 0:
+            self.label(np.arange(n))  # no vessel in any probe: let the phase matching see everything
+            return
+        near = np.zeros(n, bool)
+        for p in probes[area >= COARSE_KEEP * area.max()]:
+            near[max(p - step + 1, 0): p + step] = True
+        self.label(np.flatnonzero(near & (np.arange(n) % COARSE_STRIDE == 0)))
+
+    def neighbours(self, frames: list[int]) -> int:
+        """Label the frames next to these; how many were new."""
+        f = np.asarray(frames, dtype=np.int64)
+        return self.label(np.r_[f - 1, f + 1])
+
+
+def _choose_pair(ra: XARun, rb: XARun, la: np.ndarray, lb: np.ndarray,
+                 lz: tuple[_FrameLabeller, _FrameLabeller] | None, objects: Any,
+                 frames: tuple[int, int] | None, options: dict[str, Any]) -> tuple[PhaseMatch, float]:
+    """The phase matching, coarse to fine when ``lz`` labels the frames as it goes.
+
+    Returns the match and the seconds spent labelling frames.
+    """
+    t_seg = 0.0
+    while True:
+        coarse = lz is not None and not (lz[0].complete and lz[1].complete)
+        try:
+            phase = match_phase(ra, rb, la, lb, objects=objects, pair=frames, **options,
+                                **({"labelled_a": lz[0].known.copy(), "labelled_b": lz[1].known.copy()}
+                                   if coarse else {}))
+        except VesselcadError as exc:
+            if not coarse:
+                raise ReconstructionError(f"motion phase matching: {exc}. Pass frames=(i, j) (CLI: --frames "
+                                          "I J) to choose the frame pair yourself") from None
+            phase = None
+        if not coarse:
+            return phase, t_seg
+        t0 = time.perf_counter()
+        if phase is None or (frames is None and (phase.fill_a[phase.frame_a] < 0.9
+                                                 or phase.fill_b[phase.frame_b] < 0.9)):
+            # the labelled frames hold no filled pair with key points: label them all
+            new = lz[0].label(np.arange(ra.n_frames)) + lz[1].label(np.arange(rb.n_frames))
+        elif frames is not None:
+            new = 0
+        else:
+            ok = phase.eligible_a[:, None] & phase.eligible_b[None, :] & np.isfinite(phase.score)
+            order = np.argsort(np.where(ok, phase.score, np.inf), axis=None)[:COARSE_TOP]
+            ia, ib = np.unravel_index(order[ok.ravel()[order]], ok.shape)
+            new = lz[0].neighbours(ia) + lz[1].neighbours(ib)
+            # the chosen pair's surroundings whole: one frame's key point can be far off and
+            # hide a good pair next to it from the coarse grid
+            reach = np.arange(-COARSE_REACH, COARSE_REACH + 1)
+            new += lz[0].label(phase.frame_a + reach) + lz[1].label(phase.frame_b + reach)
+        t_seg += time.perf_counter() - t0
+        if not new:
+            return phase, t_seg
+
+
 def _summary(results: list[BranchResult]) -> dict[str, float]:
     # Rejected branches keep their points for the report picture but are not part of the tree.
     rps = [b.reprojection for b in results if b.ok and b.reprojection is not None]
@@ -573,6 +692,7 @@ def reconstruct(
     solid: bool = True,
     progress: bool = False,
     tta: str | bool = "chosen",
+    frame_search: str = "coarse",
 ) -> Reconstruction:
     """3D vessel tree from two X-ray angiography runs of the same vessels (the whole method).
 
@@ -624,6 +744,18 @@ def reconstruct(
         matching, ~4x the segmentation time); ``'none'``. ``True`` and
         ``False`` mean ``'chosen'`` and ``'none'``. Only with the model (not
         with ``labels``).
+    frame_search : {'coarse', 'all'}
+        Which frames the model labels for the phase matching. ``'coarse'``
+        (default): coarse to fine, on runs of at least ``COARSE_MIN_FRAMES``
+        frames at 12 fps or more: every fourth frame, then every frame
+        within three frames of those that show the vessels filled (at least
+        ``COARSE_KEEP`` of their largest area), then the frames around the
+        best pairs until nothing is added (about three quarters of the
+        frames of a phantom run; should no filled pair be found that way,
+        all of them). Wash-in and wash-out frames, which the phase matching
+        does not choose while filled ones have key points, are mostly left
+        out. ``'all'``: every frame. Only with the model (``tta='all'``
+        labels every frame).
 
     Returns
     -------
@@ -645,6 +777,8 @@ def reconstruct(
         tta = "chosen" if tta else "none"
     if tta not in TTA_MODES:
         raise ArgumentError(f"tta: expected one of {TTA_MODES}, got {tta!r}")
+    if frame_search not in FRAME_SEARCH_MODES:
+        raise ArgumentError(f"frame_search: expected one of {FRAME_SEARCH_MODES}, got {frame_search!r}")
     # checked before the segmentation (minutes on long runs), not only by match_phase after it
     if isinstance(objects, str):
         ok = objects in ("auto", "vessels", *OBJECTS)
@@ -671,14 +805,21 @@ def reconstruct(
     timings["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    lz: tuple[_FrameLabeller, _FrameLabeller] | None = None
     if labels is not None:
         if not isinstance(labels, (tuple, list)) or len(labels) != 2:
             raise ArgumentError("labels: expected a pair (labels of run A, labels of run B)")
         la, lb = _check_labels(labels[0], ra, "labels[0]"), _check_labels(labels[1], rb, "labels[1]")
     else:
         seg = model if isinstance(model, Segmenter) else Segmenter(model)
-        la = seg(ra.frames, progress=progress, tta=tta == "all")
-        lb = seg(rb.frames, progress=progress, tta=tta == "all")
+        if frame_search == "coarse" and tta != "all":
+            lz = (_FrameLabeller(seg, ra, progress), _FrameLabeller(seg, rb, progress))
+            lz[0].coarse(None if frames is None else frames[0])
+            lz[1].coarse(None if frames is None else frames[1])
+            la, lb = lz[0].labels, lz[1].labels
+        else:
+            la = seg(ra.frames, progress=progress, tta=tta == "all")
+            lb = seg(rb.frames, progress=progress, tta=tta == "all")
     timings["segmentation"] = time.perf_counter() - t
 
     if solid:
@@ -687,14 +828,11 @@ def reconstruct(
 
         start_fuse_worker()
     t = time.perf_counter()
-    try:
-        phase = match_phase(ra, rb, la, lb, objects=objects, pair=frames,
-                            **({} if labels is not None else {"vessel_weight": MODEL_VESSEL_WEIGHT_MM}))
-    except VesselcadError as exc:
-        raise ReconstructionError(f"motion phase matching: {exc}. Pass frames=(i, j) (CLI: --frames I J) "
-                                  "to choose the frame pair yourself") from None
+    phase, t_seg = _choose_pair(ra, rb, la, lb, lz, objects, frames,
+                                {} if labels is not None else {"vessel_weight": MODEL_VESSEL_WEIGHT_MM})
     warn += [f"phase: {w}" for w in phase.warnings]
-    timings["phase"] = time.perf_counter() - t
+    timings["phase"] = time.perf_counter() - t - t_seg
+    timings["segmentation"] += t_seg
 
     fa, fb = phase.frame_a, phase.frame_b
     lab_a, lab_b = la[fa], lb[fb]
