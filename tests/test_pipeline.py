@@ -419,5 +419,15 @@ def test_coarse_frame_search_skips_unfilled_frames_and_finds_an_agreeing_pair():
     full = reconstruct(ra, rb, model=Truth(), solid=False, refine=False, frame_search="all")
     assert len(calls) == ra.n_frames + rb.n_frames and full.phase.labelled_a is None
     assert trees_apart(rec) < 0.5 and trees_apart(full) < 0.5
+    # a forced pair is labelled and used even where the coarse pass left it out (wash-in, wash-out)
+    pick = []
+    for known, lab in ((ka, case.run_a.labels), (kb, case.run_b.labels)):
+        area = (lab == 1).sum(axis=(1, 2))
+        pick.append(int(np.flatnonzero(~known & (area > 0.2 * area.max()))[0]))
+    calls.clear()
+    with pytest.raises(ReconstructionError, match="matching"):  # half-filled frames of two phases
+        reconstruct(ra, rb, model=Truth(), solid=False, refine=False, frames=tuple(pick))
+    assert ra.frames[pick[0]].tobytes() in calls and rb.frames[pick[1]].tobytes() in calls
+    assert len(calls) < 0.85 * (ra.n_frames + rb.n_frames)
     with pytest.raises(vc.ArgumentError, match="frame_search"):
         reconstruct(ra, rb, model=Truth(), frame_search="some")

@@ -45,6 +45,9 @@ __all__ = [
 #: Stationary objects, their label value and key point.
 OBJECTS = {"balloon": 3, "catheter": 2, "lead": 4}
 _VESSEL = 1
+#: ``match_phase``'s ``prefer_fill``: frames filled to this share of the run's largest vessel area
+#: are preferred (docs/phase.md, "Restrictions").
+PREFER_FILL = 0.9
 _IN_PLANE = np.zeros((3, 3, 3), bool)
 _IN_PLANE[1] = True  # 8-connectivity within a frame, never across frames
 
@@ -968,7 +971,7 @@ def match_phase(
     *,
     objects: str | Sequence[str] = "auto",
     min_contrast: float = 0.5,
-    prefer_fill: float = 0.9,
+    prefer_fill: float = PREFER_FILL,
     use_ecg: bool | None = None,
     ecg_tolerance: float = 0.06,
     ecg_weight: float = 10.0,

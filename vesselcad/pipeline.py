@@ -28,7 +28,7 @@ from .geometry import CArmView
 from .io import XARun, load_run
 from .matching import BranchPair, GraphMatch, match_graphs
 from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
-from .phase import OBJECTS, PhaseMatch, match_phase
+from .phase import OBJECTS, PREFER_FILL, PhaseMatch, match_phase
 from .refine import Refinement, refine_geometry
 from .segment import Segmenter
 from .surface import semi_axes
@@ -638,8 +638,8 @@ def _choose_pair(ra: XARun, rb: XARun, la: np.ndarray, lb: np.ndarray,
         if not coarse:
             return phase, t_seg
         t0 = time.perf_counter()
-        if phase is None or (frames is None and (phase.fill_a[phase.frame_a] < 0.9
-                                                 or phase.fill_b[phase.frame_b] < 0.9)):
+        if phase is None or (frames is None and (phase.fill_a[phase.frame_a] < PREFER_FILL
+                                                 or phase.fill_b[phase.frame_b] < PREFER_FILL)):
             # the labelled frames hold no filled pair with key points: label them all
             new = lz[0].label(np.arange(ra.n_frames)) + lz[1].label(np.arange(rb.n_frames))
         elif frames is not None:
