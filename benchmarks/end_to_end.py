@@ -53,7 +53,7 @@ STAGES = ("segmentation", "phase", "graphs", "refinement", "matching", "centreli
 
 def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
              segmenter: vc.Segmenter | None = None, tta: str = "chosen",
-             frame_search: str = "coarse") -> dict:
+             frame_search: str = "all") -> dict:
     base, _, option = variant.partition("/")
     mis = 1.5 if base.endswith("1.5deg") else 0.0
     case = generate_case(seed, kind, n_frames, miscalibration_deg=mis)
@@ -138,9 +138,9 @@ def main() -> None:
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--model", metavar="ONNX", help="segmentation model of the 'model' variant: a file, "
                     "'fp32' or 'int8' (default: the bundled fp32 model)")
-    ap.add_argument("--frame-search", choices=["coarse", "all"], default="coarse",
-                    help="model variant: frames labelled for the phase matching, coarse to fine (default) or "
-                    "all (reconstruct(frame_search=...))")
+    ap.add_argument("--frame-search", choices=["all", "coarse"], default="all",
+                    help="model variant: frames labelled for the phase matching, all (default) or coarse "
+                    "to fine (reconstruct(frame_search=...))")
     ap.add_argument("--tta", choices=["chosen", "all", "none"], default="chosen",
                     help="model variant: mirror test-time augmentation of the chosen frames (default), of "
                     "every frame, or none (reconstruct(tta=...))")

