@@ -12,8 +12,9 @@ Prints one table:
 * milliseconds per 512 x 512 frame with onnxruntime on ``--threads`` CPU threads;
 * the same for the int8 models: the bundled ``gated_unet_int8.onnx`` and the plain U-Net
   quantized the same way (``segmentation_onnx.quantize.quantize_int8``, 7-bit weights);
-* every model again with mirror test-time augmentation (``Segmenter(tta=True)``: the mean
-  class probabilities of the frame and its three mirror images; ``--no-tta`` skips these rows);
+* every model again with test-time augmentation (``Segmenter(tta=True)``: the mean class
+  probabilities of the frame and its three mirror images, each at the frame's size and at 0.75
+  of it; ``--no-tta`` skips these rows);
 
 next to the goals of issue 12 and, clearly apart, the paper's mIoU figures
 (measured on the paper's own real data, not comparable number for number).
@@ -120,7 +121,7 @@ def main() -> int:
             r.update(evaluate_real_catheters(path, threads=a.threads, tta=tta))
             r["ms_per_512_frame"] = time_inference(path, threads=a.threads, tta=tta)
             r["size_mb"] = path.stat().st_size / 1e6
-            rows[name + (" + mirror TTA" if tta else "")] = r
+            rows[name + (" + TTA (mirrors x sizes 1, 0.75)" if tta else "")] = r
     cols = [("iou_vessel", "vessel IoU"), ("iou_catheter", "catheter IoU"), ("iou_balloon", "balloon IoU"),
             ("iou_lead", "lead IoU"), ("miou", "mIoU"), ("dice_mean", "real Dice"),
             ("cath_recall", "real catheter → catheter"), ("cath_as_vessel", "real catheter → vessel"),

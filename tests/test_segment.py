@@ -83,9 +83,9 @@ def test_real_validation_dice(seg):
 
 
 def test_mirror_tta_is_mirror_equivariant(seg, phantom_frames):
-    # Averaging over the frame and its three mirror images makes the result commute with
-    # mirroring (a side multiple of 16: no padding to break the symmetry); one network
-    # call alone does not (its convolutions are not mirror symmetric).
+    # Averaging over the frame and its three mirror images (at each of the two sizes) makes the
+    # result commute with mirroring (sides of 256 and 192, multiples of 16: no padding to break
+    # the symmetry); one network call alone does not (its convolutions are not mirror symmetric).
     frame = phantom_frames[0][0][128:384, 96:352]
     _, p = seg(frame, return_proba=True, tta=True)
     for axes in ((1,), (0,), (0, 1)):
@@ -94,10 +94,18 @@ def test_mirror_tta_is_mirror_equivariant(seg, phantom_frames):
     _, p1 = seg(frame, return_proba=True)
     _, q1 = seg(np.ascontiguousarray(frame[:, ::-1]), return_proba=True)
     assert np.abs(q1[:, :, ::-1] - p1).max() > 1e-3
-    # the mean of the four single calls, by hand
+    # the mean of the four single calls at each size, by hand: the frame's own (256) and 0.75 of
+    # it, which is what max_side=192 gives (the frame scaled down, the result scaled back)
+    flips = ((), (1,), (0,), (0, 1))
     hand = np.mean([np.flip(seg(np.ascontiguousarray(np.flip(frame, a)), return_proba=True)[1],
-                            tuple(x + 1 for x in a)) for a in ((), (1,), (0,), (0, 1))], axis=0)
-    np.testing.assert_allclose(p, hand, atol=1e-5)
+                            tuple(x + 1 for x in a)) for a in flips], axis=0)
+    mirror_only = vc.Segmenter(threads=2, tta=True, tta_scales=(1.0,))
+    np.testing.assert_allclose(mirror_only(frame, return_proba=True)[1], hand, atol=1e-5)
+    seg192 = vc.Segmenter(threads=2, max_side=192)
+    small = np.mean([np.flip(seg192(np.ascontiguousarray(np.flip(frame, a)), return_proba=True)[1],
+                             tuple(x + 1 for x in a)) for a in flips], axis=0)
+    np.testing.assert_allclose(p, (hand + small) / 2, atol=1e-5)
+    assert seg.tta_scales == (1.0, 0.75)
     # odd sizes: padded, mirrored, cut back to the frame
     lab, pr = seg(frame[:101, :77], return_proba=True, tta=True)
     assert lab.shape == (101, 77) and pr.shape == (5, 101, 77)
@@ -107,6 +115,9 @@ def test_mirror_tta_is_mirror_equivariant(seg, phantom_frames):
         seg(frame, tta="yes")
     with pytest.raises(ArgumentError, match="tta"):
         vc.Segmenter(tta=1)
+    for bad in ((), (0.1,), "big", (1.0, None)):
+        with pytest.raises(ArgumentError, match="tta_scales"):
+            vc.Segmenter(tta_scales=bad)
 
 
 def test_mirror_tta_scores(seg, phantom_frames):

@@ -302,9 +302,9 @@ def _parser() -> argparse.ArgumentParser:
                        "vessels (none: the vessels' epipolar consistency alone; auto falls back to it "
                        "when no object is found in both runs)")
         q.add_argument("--tta", choices=["chosen", "all", "none"], default="chosen",
-                       help="mirror test-time augmentation of the segmentation (the mean over the frame "
-                       "and its three mirror images): the two chosen frames (default), every frame (~4x "
-                       "the segmentation time), or none")
+                       help="test-time augmentation of the segmentation (the mean over the frame and "
+                       "its three mirror images, each at its size and at 0.75 of it): the two chosen "
+                       "frames (default), every frame (~7x the segmentation time), or none")
         q.add_argument("--frame-search", choices=["all", "coarse"], default="all",
                        help="which frames the model labels for the phase matching: all (default), or "
                        "coarse to fine, about three quarters of a 15 fps run (faster, for batches)")

@@ -735,13 +735,14 @@ def reconstruct(
     progress : bool
         Progress bars for the long stages.
     tta : {'chosen', 'all', 'none'}
-        Mirror test-time augmentation of the segmentation
-        (``Segmenter(tta=True)``: the mean over the frame and its three
-        mirror images, four network calls a frame). ``'chosen'`` (default):
-        every frame is segmented once for the phase matching, and the two
-        chosen frames again with it before their centrelines are traced;
-        ``'all'``: every frame with it (better catheter labels for the phase
-        matching, ~4x the segmentation time); ``'none'``. ``True`` and
+        Test-time augmentation of the segmentation (``Segmenter(tta=True)``:
+        the mean over the frame and its three mirror images, each at the
+        frame's size and at 0.75 of it, eight network calls a frame).
+        ``'chosen'`` (default): every frame is segmented once for the phase
+        matching, and the two chosen frames again with it before their
+        centrelines are traced; ``'all'``: every frame with it (better
+        catheter labels for the phase matching, ~7x the segmentation time);
+        ``'none'``. ``True`` and
         ``False`` mean ``'chosen'`` and ``'none'``. Only with the model (not
         with ``labels``).
     frame_search : {'all', 'coarse'}

@@ -11,8 +11,9 @@ collimator or image-intensifier borders do not squash the contrast), frames
 larger than ``max_side`` are scaled down for the network and the result is
 scaled back, and each batch is padded to a multiple of 16 by reflection.
 With ``tta=True`` the class probabilities are averaged over the frame and its
-three mirror images (left-right, up-down, both): four network calls per frame
-for better labels (docs/segmentation.md, "Mirror test-time augmentation").
+three mirror images (left-right, up-down, both), each at the frame's own size
+and at 0.75 of it (``tta_scales``): eight network calls per frame for better
+labels (docs/segmentation.md, "Test-time augmentation").
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 
 from .errors import ArgumentError, InputFileError
 
-__all__ = ["Segmenter", "CLASSES", "CLASS_COLOURS", "BUNDLED_MODELS", "normalize_frames",
+__all__ = ["Segmenter", "CLASSES", "CLASS_COLOURS", "BUNDLED_MODELS", "TTA_SCALES", "normalize_frames",
            "overlay_labels", "bundled_model_path"]
 
 #: Class index -> name of the label maps.
@@ -41,6 +42,11 @@ _BUNDLED = "gated_unet.onnx"
 BUNDLED_MODELS: dict[str, str] = {"fp32": _BUNDLED, "int8": "gated_unet_int8.onnx"}
 #: Memory layouts of onnxruntime's CPU convolutions (``Segmenter(layout=...)``).
 LAYOUTS = ("auto", "nchwc", "nchw")
+#: Default ``Segmenter(tta_scales=...)``: test-time augmentation runs the network on the frame
+#: (and its mirror images) at its own size and at 0.75 of it. Held-out phantom frames, int8 model:
+#: vessel / catheter / balloon IoU 0.837 / 0.747 / 0.838 with the mirrors at one size,
+#: 0.847 / 0.775 / 0.870 with both sizes (docs/results.md, 2026-12-04).
+TTA_SCALES: tuple[float, ...] = (1.0, 0.75)
 #: The faster layout per (model file, threads), timed once per process.
 _LAYOUT_CHOICE: dict[tuple[str, int | None], str] = {}
 
@@ -144,27 +150,36 @@ class Segmenter:
         (``Segmenter.layout`` tells which); other providers than the CPU's
         keep onnxruntime's default.
     tta : bool
-        Mirror test-time augmentation by default (a call's ``tta=`` overrides
-        it): the class probabilities are the mean over the frame and its
-        left-right, up-down and doubly mirrored copies, each run through the
-        network and mirrored back. Four times the work; on the held-out
-        phantom frames vessel / catheter / balloon IoU 0.814 / 0.711 / 0.712
-        -> 0.829 / 0.734 / 0.757 and real vessel Dice 0.745 -> 0.754 (fp32,
-        MODEL_CARD.md). Off by default: whole runs are segmented for the phase
-        matching, where speed counts; :func:`vesselcad.reconstruct` re-segments
-        its two chosen frames with it.
+        Test-time augmentation by default (a call's ``tta=`` overrides it):
+        the class probabilities are the mean over the frame and its
+        left-right, up-down and doubly mirrored copies, each at every scale
+        of ``tta_scales``, run through the network and mirrored and scaled
+        back. Eight times the work at the default scales; on the 240 held-out
+        phantom frames (int8 model) vessel / catheter / balloon IoU 0.822 /
+        0.718 / 0.802 -> 0.847 / 0.775 / 0.870 (the mirrors at one size:
+        0.837 / 0.747 / 0.838; docs/results.md). Off by default: whole runs
+        are segmented for the phase matching, where speed counts;
+        :func:`vesselcad.reconstruct` re-segments its two chosen frames with it.
+    tta_scales : sequence of float
+        Sizes, relative to the frame as the network sees it (after
+        ``max_side``), at which test-time augmentation runs the network;
+        default :data:`TTA_SCALES` ``(1.0, 0.75)``. The network was trained
+        on crops scaled 0.55-1.9 times; at 0.75 thin vessels are found less
+        well but catheters and balloons better, and the mean beats both.
+        ``(1.0,)``: mirror images only (four network calls a frame).
 
     Examples
     --------
     >>> seg = Segmenter()
     >>> labels = seg(frames)                       # (N, H, W) uint8
     >>> labels, proba = seg(frames, return_proba=True)   # proba (N, 5, H, W) float32
-    >>> labels = seg(frames, tta=True)             # mean over the four mirror images
+    >>> labels = seg(frames, tta=True)             # mean over 4 mirror images x 2 sizes
     """
 
     def __init__(self, model: str | os.PathLike | None = None, *, threads: int | None = None,
                  batch_size: int = 4, max_side: int = 768, providers: Sequence[str] | None = None,
-                 layout: str = "auto", tta: bool = False):
+                 layout: str = "auto", tta: bool = False,
+                 tta_scales: Sequence[float] = TTA_SCALES):
         import onnxruntime as ort
 
         if model is None or (isinstance(model, str) and model in BUNDLED_MODELS):
@@ -183,6 +198,12 @@ class Segmenter:
             raise ArgumentError(f"layout: expected one of {LAYOUTS}, got {layout!r}")
         if not isinstance(tta, (bool, np.bool_)):
             raise ArgumentError(f"tta: expected True or False, got {tta!r}")
+        try:
+            scales = tuple(float(v) for v in tta_scales)
+        except (TypeError, ValueError):
+            raise ArgumentError(f"tta_scales: expected a sequence of numbers, got {tta_scales!r}") from None
+        if not scales or not all(0.25 <= v <= 2.0 for v in scales):
+            raise ArgumentError(f"tta_scales: expected one or more scales in [0.25, 2], got {tta_scales!r}")
         opts = ort.SessionOptions()
         if threads is not None:
             opts.intra_op_num_threads = int(threads)
@@ -221,6 +242,7 @@ class Segmenter:
         self.max_side = int(max_side)
         self.threads = threads
         self.tta = bool(tta)
+        self.tta_scales = scales
 
     def _probe(self, sess: Any, side: int = 128) -> float:
         """Seconds one call of ``sess`` takes on a ``side``² frame (after a first call)."""
@@ -254,7 +276,7 @@ class Segmenter:
 
     def __repr__(self) -> str:
         return (f"Segmenter(model={str(self.path)!r}, classes={self.n_classes}, max_side={self.max_side}, "
-                f"layout={self.layout!r}, tta={self.tta})")
+                f"layout={self.layout!r}, tta={self.tta}, tta_scales={self.tta_scales})")
 
     # ------------------------------------------------------------------ running
     def __call__(self, frames: Any, *, return_proba: bool = False, progress: bool = False,
@@ -271,8 +293,8 @@ class Segmenter:
         progress : bool
             Show a progress bar over the batches.
         tta : bool, optional
-            Mirror test-time augmentation for this call (default: the
-            segmenter's ``tta``).
+            Test-time augmentation (mirror images at ``tta_scales``) for this
+            call (default: the segmenter's ``tta``).
 
         Returns
         -------
@@ -319,25 +341,32 @@ class Segmenter:
             hs, ws = max(16, round(h * f)), max(16, round(w * f))
             z = np.stack([cv2.resize(im, (ws, hs), interpolation=cv2.INTER_AREA) for im in z])
         hh, ww = z.shape[1:]
-        ph, pw = (-hh) % _MULTIPLE, (-ww) % _MULTIPLE
-        if ph or pw:
-            mode = "reflect" if min(hh, ww) > max(ph, pw) else "edge"
-            z = np.pad(z, ((0, 0), (0, ph), (0, pw)), mode=mode)
         if tta:
-            # the padded frames and their mirror images (mirrored back after the
-            # network, before the padding is cut off); probabilities averaged
+            # at each scale the padded frames and their mirror images (mirrored back
+            # after the network, before the padding is cut off, then scaled back);
+            # probabilities averaged
             flips = ((), (-1,), (-2,), (-2, -1))
             p = np.zeros((len(z), self.n_classes, hh, ww), np.float32)
-            for axes in flips:
-                zi = np.ascontiguousarray(np.flip(z, axes)) if axes else z
-                pi = self._proba(zi)
-                p += (np.flip(pi, axes) if axes else pi)[:, :, :hh, :ww]
-            p /= len(flips)
+            for scale in self.tta_scales:
+                zs = z
+                if scale != 1.0:
+                    hs, ws = max(16, round(hh * scale)), max(16, round(ww * scale))
+                    zs = np.stack([cv2.resize(im, (ws, hs), interpolation=cv2.INTER_AREA if scale < 1
+                                              else cv2.INTER_LINEAR) for im in z])
+                zs, (h1, w1) = _pad(zs), zs.shape[1:]
+                ps = np.zeros((len(z), self.n_classes, h1, w1), np.float32)
+                for axes in flips:
+                    zi = np.ascontiguousarray(np.flip(zs, axes)) if axes else zs
+                    pi = self._proba(zi)
+                    ps += (np.flip(pi, axes) if axes else pi)[:, :, :h1, :w1]
+                if (h1, w1) != (hh, ww):
+                    ps = _resize_proba(ps, hh, ww)
+                p += ps
+            p /= len(flips) * len(self.tta_scales)
         else:
-            p = self._proba(z)[:, :, :hh, :ww]
+            p = self._proba(_pad(z))[:, :, :hh, :ww]
         if f != 1.0:
-            p = np.stack([np.stack([cv2.resize(c, (w, h), interpolation=cv2.INTER_LINEAR) for c in fr])
-                          for fr in p])
+            p = _resize_proba(p, h, w)
         return p
 
     def _proba(self, z: np.ndarray) -> np.ndarray:
@@ -345,6 +374,22 @@ class Segmenter:
         logits = self._session.run([self._io.output], {self._io.input: z[:, None]})[0]
         e = np.exp(logits - logits.max(axis=1, keepdims=True))
         return (e / e.sum(axis=1, keepdims=True)).astype(np.float32)
+
+
+def _pad(z: np.ndarray) -> np.ndarray:
+    """Frames (N, H, W) padded at the bottom and right to a multiple of 16 (reflection)."""
+    hh, ww = z.shape[1:]
+    ph, pw = (-hh) % _MULTIPLE, (-ww) % _MULTIPLE
+    if not (ph or pw):
+        return z
+    mode = "reflect" if min(hh, ww) > max(ph, pw) else "edge"
+    return np.pad(z, ((0, 0), (0, ph), (0, pw)), mode=mode)
+
+
+def _resize_proba(p: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Class probabilities (N, C, h0, w0) resampled (bilinear) to (N, C, h, w)."""
+    return np.stack([np.stack([cv2.resize(c, (w, h), interpolation=cv2.INTER_LINEAR) for c in fr])
+                     for fr in p])
 
 
 #: Overlay colours (RGB) of the classes 1..4: vessel red, catheter green, balloon blue, lead yellow.
