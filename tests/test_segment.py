@@ -115,7 +115,7 @@ def test_mirror_tta_is_mirror_equivariant(seg, phantom_frames):
         seg(frame, tta="yes")
     with pytest.raises(ArgumentError, match="tta"):
         vc.Segmenter(tta=1)
-    for bad in ((), (0.1,), "big", (1.0, None)):
+    for bad in ((), (0.1,), "big", "1", (1.0, None)):
         with pytest.raises(ArgumentError, match="tta_scales"):
             vc.Segmenter(tta_scales=bad)
 

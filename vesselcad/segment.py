@@ -199,6 +199,8 @@ class Segmenter:
         if not isinstance(tta, (bool, np.bool_)):
             raise ArgumentError(f"tta: expected True or False, got {tta!r}")
         try:
+            if isinstance(tta_scales, (str, bytes)):
+                raise TypeError
             scales = tuple(float(v) for v in tta_scales)
         except (TypeError, ValueError):
             raise ArgumentError(f"tta_scales: expected a sequence of numbers, got {tta_scales!r}") from None
