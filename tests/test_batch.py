@@ -201,3 +201,14 @@ def test_batch_on_a_dask_local_cluster(archive, tmp_path):
     assert json.loads((out / "summary.json").read_text())["scheduler"] == cluster.scheduler_address
     assert main(["batch", str(manifest), "--out", str(out), "--scheduler", "tcp://127.0.0.1:1",
                  "--quiet"]) == 2
+
+
+def test_batch_defaults_are_reconstructs_own():
+    # a case's fingerprint leaves out options at their defaults: those must be reconstruct()'s
+    import inspect
+
+    from vesselcad.batch import _DEFAULTS
+    from vesselcad.pipeline import reconstruct
+
+    params = inspect.signature(reconstruct).parameters
+    assert {k: params[k].default for k in _DEFAULTS} == _DEFAULTS

@@ -352,6 +352,50 @@ def test_a_daughter_of_a_junction_whose_depth_disagrees_starts_inside_its_parent
     assert far[1].parent == 0 and far[1].warnings == []
 
 
+def test_branches_off_the_hearts_surface_are_left_out_but_not_near_the_ostium():
+    # The heart's surface: a sphere of radius 60 mm (q(u) = 1 with u = x / 30 mm), fitted with a
+    # spread of 0.5 mm: the limit is max(4 x 0.5, 1.5) = 2 mm from it.
+    from vesselcad.pipeline import _drop_off_surface
+    from vesselcad.surface import QuadricSurface
+
+    scale, radius = 30.0, 60.0
+    c = (scale / radius) ** 2
+    sphere = QuadricSurface(coefficients=np.array([c, c, c, 0, 0, 0, 0, 0, 0], float),
+                            centre=np.zeros(3), scale=scale, sigma_mm=0.5, inliers=1.0)
+    t = np.linspace(0.0, 0.6, 61)[:, None]  # 36 mm of arc
+    def arc(r, phi0, theta0):  # along a meridian of the sphere of radius r
+        th = theta0 + t[:, 0]
+        return r * np.stack([np.sin(th) * np.cos(phi0), np.sin(th) * np.sin(phi0), np.cos(th)], axis=1)
+    ostium = arc(radius, 0.0, 0.0)[0]
+    on = arc(radius, 0.0, 0.3)                     # on the surface
+    near = arc(radius + 1.5, 1.0, 0.6)             # 1.5 mm out: within the limit
+    inside = arc(radius - 4.0, 2.0, 0.6)           # 4 mm inside: a wrong pairing
+    proximal = arc(radius + 8.0, 0.0, 0.0)[:20]    # 8 mm off, but within 25 mm of the ostium
+    results = [_branch(k, p) for k, p in enumerate((on, near, inside, proximal))]
+    _drop_off_surface(results, sphere, ostium, 4.0)
+    assert [b.ok for b in results] == [True, True, False, True]
+    # the surface's first-order distance at 56 mm from the centre: (60^2 - 56^2) / (2 x 56) = 4.14 mm
+    assert "off the heart's surface" in results[2].status and "lies 4.1 mm" in results[2].status
+    # without the ostium the proximal piece is judged like the others; sigmas=None keeps all
+    results = [_branch(k, p) for k, p in enumerate((on, near, inside, proximal))]
+    _drop_off_surface(results, sphere, None, 4.0)
+    assert [b.ok for b in results] == [True, True, False, False]
+    results = [_branch(k, p) for k, p in enumerate((on, inside))]
+    _drop_off_surface(results, sphere, ostium, None)
+    _drop_off_surface(results, None, ostium, 4.0)
+    assert all(b.ok for b in results)
+    # a wider spread (a real heart is no ellipsoid) widens the limit: 4 x 1.2 = 4.8 mm
+    wide = QuadricSurface(coefficients=sphere.coefficients, centre=np.zeros(3), scale=scale, sigma_mm=1.2,
+                          inliers=1.0)
+    results = [_branch(0, inside)]
+    _drop_off_surface(results, wide, ostium, 4.0)
+    assert results[0].ok
+    (ra, la), (rb, lb) = run_of(VIEW_A), run_of(VIEW_B)
+    for bad in (0, -1.0, float("nan"), True, "4"):
+        with pytest.raises(vc.ArgumentError, match="off_surface_sigmas"):
+            reconstruct(ra, rb, labels=(la, lb), off_surface_sigmas=bad)
+
+
 def test_hooked_centreline_ends_are_cut_and_smooth_ones_kept():
     from vesselcad.pipeline import _without_hooks
 

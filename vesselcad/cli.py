@@ -66,9 +66,12 @@ def _print_reconstruction(rec, paths: dict, out: Path) -> None:
 
 
 def _reconstruct_args(args: argparse.Namespace) -> dict:
+    from .pipeline import OFF_SURFACE_SIGMAS
+
     return {"method": args.method, "frames": args.frames, "model": args.model, "objects": args.objects,
             "refine": not args.no_refine, "solid": not args.no_solid, "progress": not args.quiet,
-            "tta": args.tta, "frame_search": args.frame_search}
+            "tta": args.tta, "frame_search": args.frame_search,
+            "off_surface_sigmas": None if args.keep_off_surface else OFF_SURFACE_SIGMAS}
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -308,6 +311,10 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--frame-search", choices=["all", "coarse"], default="all",
                        help="which frames the model labels for the phase matching: all (default), or "
                        "coarse to fine, about three quarters of a 15 fps run (faster, for batches)")
+        q.add_argument("--keep-off-surface", action="store_true",
+                       help="keep branches that lie off the heart's surface fitted to the tree (by "
+                       "default they are left out as wrong pairings; use it for vessels that do not "
+                       "run on one surface)")
         q.add_argument("--no-refine", action="store_true", help="keep the files' geometry as it is")
         q.add_argument("--no-solid", action="store_true", help="centrelines only, no CAD solid")
         q.add_argument("--no-html", action="store_true", help="skip report.html")

@@ -61,6 +61,15 @@ JOIN_REPROJECTION_PX = 10.0
 #: A linked branch whose 3D start lies outside its parent's lumen has it moved onto
 #: the parent when it is at most this far (mm) from it (``_link_parents``).
 MAX_JOIN_GAP_MM = 10.0
+#: A 3D branch whose points lie, by their median, farther from the heart's surface fitted by the
+#: matching (``GraphMatch.surface``) than ``OFF_SURFACE_SIGMAS`` times that fit's spread, and at
+#: least ``OFF_SURFACE_MIN_MM``, is left out (``reconstruct(off_surface_sigmas=...)``): a pairing of
+#: two vessels that share a band of epipolar lines reprojects perfectly but lies inside or outside
+#: the heart. Points within ``OFF_SURFACE_OSTIUM_MM`` of the ostium do not count (the proximal
+#: vessel leaves the aorta, or the coronary sinus the right atrium, off that surface).
+OFF_SURFACE_SIGMAS = 4.0
+OFF_SURFACE_MIN_MM = 1.5
+OFF_SURFACE_OSTIUM_MM = 25.0
 #: ``reconstruct(tta=...)``: which frames are segmented with mirror test-time augmentation.
 TTA_MODES = ("chosen", "all", "none")
 #: Phase matching's weight of the vessels' epipolar consistency (mm per unit, ``match_phase``'s
@@ -507,6 +516,39 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
                                   "lumen it was")
 
 
+def _ostium(match: GraphMatch, phase: PhaseMatch) -> np.ndarray | None:
+    """The ostium in 3D: the matched roots of the two graphs, else the catheter tip the phase
+    matching triangulated (the catheter is engaged in the ostium); None when neither is known."""
+    root = next((m for m in match.landmark_pairs if (m.a, m.b) == tuple(match.roots)), None)
+    if root is not None:
+        return np.asarray(root.point_mm, float)
+    if phase.objects and phase.objects[0] == "catheter" and np.isfinite(phase.point_mm).all():
+        return np.asarray(phase.point_mm, float)
+    return None
+
+
+def _drop_off_surface(results: list[BranchResult], surface: Any, ostium: np.ndarray | None,
+                      sigmas: float | None) -> None:
+    """Leave out the branches that lie off the heart's surface (see :data:`OFF_SURFACE_SIGMAS`)."""
+    if surface is None or sigmas is None:
+        return
+    limit = max(float(sigmas) * float(surface.sigma_mm), OFF_SURFACE_MIN_MM)
+    for b in results:
+        if not b.ok:
+            continue
+        pts = b.points_mm
+        far = (np.ones(len(pts), bool) if ostium is None
+               else np.linalg.norm(pts - ostium, axis=1) > OFF_SURFACE_OSTIUM_MM)
+        if far.sum() < 4:  # within reach of the ostium: nothing to judge by
+            continue
+        d = float(np.median(surface.distance(pts[far])))
+        if d > limit:
+            b.status = (f"off the heart's surface: its 3D centreline lies {d:.1f} mm (median) from the "
+                        f"surface fitted to the tree's vessels, more than {limit:.1f} mm ({sigmas:g} x the "
+                        f"fit's spread of {surface.sigma_mm:.2f} mm); most likely two vessels that share "
+                        "epipolar lines paired wrongly")
+
+
 def _joins_in_both_views(ok: list[BranchResult], views: tuple[CArmView, CArmView], linked: set[int]
                          ) -> list[tuple[float, int, int, int, str]]:
     """Candidate links of the branches without a parent whose start lies on another
@@ -693,6 +735,7 @@ def reconstruct(
     progress: bool = False,
     tta: str | bool = "chosen",
     frame_search: str = "all",
+    off_surface_sigmas: float | None = OFF_SURFACE_SIGMAS,
 ) -> Reconstruction:
     """3D vessel tree from two X-ray angiography runs of the same vessels (the whole method).
 
@@ -782,6 +825,10 @@ def reconstruct(
         raise ArgumentError(f"tta: expected one of {TTA_MODES}, got {tta!r}")
     if frame_search not in FRAME_SEARCH_MODES:
         raise ArgumentError(f"frame_search: expected one of {FRAME_SEARCH_MODES}, got {frame_search!r}")
+    sig = off_surface_sigmas
+    if sig is not None and (isinstance(sig, (bool, np.bool_)) or not isinstance(sig, (int, float))
+                            or not np.isfinite(sig) or sig <= 0):
+        raise ArgumentError(f"off_surface_sigmas: expected a number > 0 or None, got {off_surface_sigmas!r}")
     # checked before the segmentation (minutes on long runs), not only by match_phase after it
     if isinstance(objects, str):
         ok = objects in ("auto", "vessels", *OBJECTS)
@@ -899,6 +946,7 @@ def reconstruct(
             bar.update()
     if bar is not None:
         bar.close()
+    _drop_off_surface(results, match.surface, _ostium(match, phase), off_surface_sigmas)
     _link_parents(results, views)
     timings["centrelines_3d"] = time.perf_counter() - t
     for b in results:
