@@ -802,6 +802,14 @@ def reconstruct(
         out; on 48 phantom cases it chose the same pair as ``'all'`` every
         time, 13 % faster end to end. Only with the model (``tta='all'``
         labels every frame).
+    off_surface_sigmas : float or None
+        A 3D branch whose points lie, by their median, farther than this many
+        times the spread of the heart's surface fitted by the matching
+        (``GraphMatch.surface``), and at least ``OFF_SURFACE_MIN_MM``, from that
+        surface is left out with the status "off the heart's surface" (a
+        pairing of two vessels that share epipolar lines); points within
+        ``OFF_SURFACE_OSTIUM_MM`` of the ostium do not count. Default 4; None
+        keeps every branch (vessels that do not run on one surface).
 
     Returns
     -------
