@@ -476,3 +476,17 @@ def test_coarse_frame_search_skips_unfilled_frames_and_finds_an_agreeing_pair():
     assert len(calls) < 0.85 * (ra.n_frames + rb.n_frames)
     with pytest.raises(vc.ArgumentError, match="frame_search"):
         reconstruct(ra, rb, model=Truth(), frame_search="some")
+
+
+def test_cli_keep_off_surface_reaches_reconstruct():
+    from vesselcad.cli import _parser, _reconstruct_args
+    from vesselcad.pipeline import OFF_SURFACE_SIGMAS
+
+    def parsed(argv):
+        args = _parser().parse_args(argv)
+        args.frames = getattr(args, "frames", None)  # batch has no pair override (as _cmd_batch)
+        return _reconstruct_args(args)
+
+    for cmd in (["reconstruct", "a.dcm", "b.dcm", "--out", "o"], ["batch", "in", "--out", "o"]):
+        assert parsed(cmd)["off_surface_sigmas"] == OFF_SURFACE_SIGMAS
+        assert parsed([*cmd, "--keep-off-surface"])["off_surface_sigmas"] is None
