@@ -226,6 +226,11 @@ class GraphMatch:
         """(K, 2) landmark index pairs (view A, view B)."""
         return np.array([(m.a, m.b) for m in self.landmark_pairs], dtype=np.int64).reshape(-1, 2)
 
+    @property
+    def root_pair(self) -> LandmarkMatch | None:
+        """The landmark pair of the matched roots (the ostium, triangulated), or None."""
+        return next((m for m in self.landmark_pairs if (m.a, m.b) == tuple(self.roots)), None)
+
     def __repr__(self) -> str:
         return (f"GraphMatch({len(self.landmark_pairs)} landmark pairs, {len(self.pairs)} branch pairs, "
                 f"{len(self.unmatched)} unmatched, roots={self.roots})")

@@ -519,7 +519,7 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
 def _ostium(match: GraphMatch, phase: PhaseMatch) -> np.ndarray | None:
     """The ostium in 3D: the matched roots of the two graphs, else the catheter tip the phase
     matching triangulated (the catheter is engaged in the ostium); None when neither is known."""
-    root = next((m for m in match.landmark_pairs if (m.a, m.b) == tuple(match.roots)), None)
+    root = match.root_pair
     if root is not None:
         return np.asarray(root.point_mm, float)
     if phase.objects and phase.objects[0] == "catheter" and np.isfinite(phase.point_mm).all():

@@ -44,8 +44,7 @@ def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: flo
                                                 "respiratory": round(float(d[1]), 4)},
                            "visible": round(visible_share(case, fa, fb), 4)}
     # The ostium: the matched root landmarks of the two views, triangulated.
-    roots = tuple(rec.match.roots)
-    root = next((m for m in rec.match.landmark_pairs if (m.a, m.b) == roots), None)
+    root = rec.match.root_pair
     ostium = np.asarray(truth["branches"][0]["points"][0], float)
     out["ostium_mm"] = (float("nan") if root is None
                         else round(float(np.linalg.norm(np.asarray(root.point_mm) - ostium)), 4))
