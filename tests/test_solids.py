@@ -1138,6 +1138,41 @@ def test_a_slow_union_adding_back_a_lost_branch_gives_way_to_the_branch_by_branc
         assert ks._inside(solid.shape, pipe.trusted_probes()).all()
 
 
+def test_a_junction_occt_cannot_finish_is_tried_again_with_a_narrower_start(monkeypatch):
+    # tests/data/README.md: a short root whose daughter starts nearly as wide as it and leaves at a
+    # shallow angle; OCCT's union of the two does not finish (30 s and more). The general fuse and
+    # the daughter's union run out of time, the daughter is tried again with its start narrowed to
+    # RETRY_CHILD_RADIUS_SHARE of the root's radius, and the whole tree goes into the solid.
+    import vesselcad.kernel.solid as ks
+    from vesselcad.tree import RETRY_CHILD_RADIUS_SHARE
+
+    if not isinstance(ks._WORKER, ks.FuseWorker) and ks._WORKER is not None:
+        pytest.skip("no helper process on this machine")
+    monkeypatch.setattr(ks, "FUSE_TIMEOUT_S", 3.0)
+    monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 4.0)
+    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "fuse_hang_rca_2119.json")
+    solid = tree.solid()
+    assert not solid.failed and sorted(solid.branch_ids) == [0, 1, 10, 13]
+    assert "OCCT's general fuse did not finish within 3 s" in solid.union_warnings[0]
+    retried = {int(w.split(":")[0].split()[1]): w for w in solid.union_warnings
+               if "tried again with its start narrowed" in w}
+    assert 0 in retried
+    assert "OCCT's boolean union with the tree did not finish within 4 s" in retried[0]
+    specs = {s["id"]: s for s in solid.specs}
+    pipes = {p.branch_id: p for p in solid.pipes}
+    for bid in retried:
+        spec = specs[bid]
+        start = float(np.ravel(spec["radius"](spec["spine"].t[spec["spine"].k]))[0])
+        # the parent's radius where the daughter starts: 0.80 mm (its root's radius law there)
+        assert spec["r_parent"] == pytest.approx(0.798, abs=0.01)
+        assert 0.6 * spec["r_parent"] <= start <= RETRY_CHILD_RADIUS_SHARE * spec["r_parent"] * 1.001
+        assert pipes[bid].start_radius == pytest.approx(start, abs=1e-3)  # the narrowed pipe went in
+    check = solid.check()
+    assert check["valid"] and check["watertight"] and check["solids"] == 1
+    for pipe in solid.pipes:
+        assert ks._inside(solid.shape, pipe.trusted_probes()).all()
+
+
 def test_a_lost_branch_whose_adding_back_overruns_is_reported_as_such(monkeypatch):
     import vesselcad.kernel.solid as ks
 

@@ -55,6 +55,12 @@ CURVATURE_FACTOR = 0.8
 #: A child's start radius is kept below this share of its parent's radius, so the
 #: child's start circle lies strictly inside the parent (no tangent faces).
 CHILD_RADIUS_SHARE = 0.9
+#: Where OCCT's union of a child with the tree fails or does not finish, the child is
+#: tried once more with its start narrowed to this share of its parent's radius: a child
+#: nearly as wide as its parent leaving it at a shallow angle runs its wall within a
+#: tenth of a millimetre of the parent's for millimetres, which can keep OCCT's surface
+#: intersection busy for minutes (docs/solids.md, "Junctions OCCT cannot finish").
+RETRY_CHILD_RADIUS_SHARE = 0.7
 #: A child shorter than this many times its radius and its parent's together at its start
 #: is a stub: in the solid it starts the child that continues it, or, childless, is left
 #: out (:meth:`VesselTree.pipe_specs`).
@@ -748,7 +754,7 @@ class VesselTree:
         Rebuilds (and merges) if needed, clamps the radius against curvature and
         at child starts, and moves a child's start onto its parent's centreline
         when it lies off it. Returns dicts ``{'id', 'name', 'parent', 'spine',
-        'radius', 'cuts', 'end', 'warnings'}``; ``cuts`` are the spine parameters (mm)
+        'radius', 'cuts', 'end', 'warnings', 'stubs', 'r_parent'}``; ``cuts`` are the spine parameters (mm)
         where a pipe that would overlap itself is cut into pieces (empty for
         almost every branch); ``end`` is ``'dome'`` for a vessel whose children
         start at its end (closed with a hemisphere there), else ``'flat'``;
@@ -757,7 +763,8 @@ class VesselTree:
         reconstruction, which can cost OCCT's fuse minutes inside the parent's
         domed end) becomes the start of the child that continues it, or,
         without children, is left out: ``stubs`` maps such ids of this
-        branch's children to the reason.
+        branch's children to the reason; ``r_parent`` is the parent's radius
+        (mm) where a child starts (None for a root).
         """
         tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
         if merge:
@@ -788,7 +795,7 @@ class VesselTree:
             swept[bid] = replace(b, spline=spine, radius_law=law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
                           "radius": law, "cuts": cuts, "end": "flat", "warnings": warns,
-                          "stubs": stubs.get(b.id, {})})
+                          "stubs": stubs.get(b.id, {}), "r_parent": r_parent})
             by_id[b.id] = specs[-1]
         return specs
 
@@ -873,7 +880,36 @@ class VesselTree:
             why = "; ".join(f"branch {s['id']} ({s['name']}): {failed[s['id']]}"
                             for s in roots if s["id"] in failed)
             raise GeometryError(f"tree: no pipe could be built ({why or 'no branches'})")
-        out = fuse_pipes(pipes)
+        by_id = {s["id"]: s for s in specs}
+        narrowed: dict[int, tuple[Any, interpolate.BSpline]] = {}
+
+        def narrower(p: Any) -> tuple[Any, str] | None:
+            """The branch's pipe once more, its start narrowed to RETRY_CHILD_RADIUS_SHARE of
+            its parent's radius (a second try where OCCT's union fails or hangs)."""
+            s = by_id.get(p.branch_id)
+            if s is None or s.get("r_parent") is None:
+                return None
+            law, _ = _clamp_radius(s["spine"], s["radius"], s["r_parent"], RETRY_CHILD_RADIUS_SHARE)
+            if law is s["radius"]:
+                return None  # already that narrow: nothing to try
+            try:
+                q = branch_pipe(s["id"], s["name"], s["parent"], s["spine"], law, station_step_mm,
+                                s.get("cuts", ()), s.get("end", "flat"), s.get("seam_deg", 0.0))
+            except Exception:  # noqa: BLE001 - no second pipe: the branch is left out as it was
+                return None
+            narrowed[s["id"]] = (q, law)
+            r0 = float(np.asarray(s["radius"](s["spine"].t[s["spine"].k])).reshape(-1)[0])
+            r1 = float(np.asarray(law(s["spine"].t[s["spine"].k])).reshape(-1)[0])
+            return q, (f"tried again with its start narrowed from {r0:.2f} to {r1:.2f} mm "
+                       f"({RETRY_CHILD_RADIUS_SHARE:.0%} of its parent's radius)")
+
+        out = fuse_pipes(pipes, retry=narrower)
+        for q in out.pipes:  # a branch that went in narrowed: its spec says so
+            if q.branch_id in narrowed and narrowed[q.branch_id][0] is q:
+                spec = by_id[q.branch_id]
+                spec["radius"] = narrowed[q.branch_id][1]
+                spec["warnings"].append(f"start narrowed to {RETRY_CHILD_RADIUS_SHARE:.0%} of its parent's "
+                                        "radius: OCCT's union with the wider start failed or did not finish")
         out.failed = {**failed, **out.failed}
         out.warnings = warnings + _contacts(specs) + out.warnings
         out.timings_s = {"rebuild": t1 - t0, "pipes": t2 - t1, **out.timings_s}
@@ -1274,10 +1310,10 @@ def _smooth_kinks(spine: interpolate.BSpline, law: interpolate.BSpline
                   f"radius / {CURVATURE_FACTOR}"]
 
 
-def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent: float | None
-                  ) -> tuple[interpolate.BSpline, list[str]]:
+def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent: float | None,
+                  share: float = CHILD_RADIUS_SHARE) -> tuple[interpolate.BSpline, list[str]]:
     """Radius law clamped against curvature (no folding) and, for a child whose parent has
-    radius ``r_parent`` at its start, below the parent's wall there."""
+    radius ``r_parent`` at its start, below ``share`` of the parent's radius there."""
     k = spine.k
     a, e = float(spine.t[k]), float(spine.t[-k - 1])
     s = np.linspace(a, e, max(int((e - a) / 0.1), 8) + 1)
@@ -1287,10 +1323,10 @@ def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent
     warnings = []
     if r_parent is not None:
         ramp = np.clip((s - a) / max(2.0 * r_parent, 1e-6), 0.0, 1.0)
-        start_lim = CHILD_RADIUS_SHARE * r_parent + ramp * 1e3
+        start_lim = share * r_parent + ramp * 1e3
         if r[0] > start_lim[0] * 1.05:
             warnings.append(f"start radius {r[0]:.2f} mm reduced to {start_lim[0]:.2f} mm "
-                            f"({CHILD_RADIUS_SHARE:.0%} of the parent's) so it starts inside the parent")
+                            f"({share:.0%} of the parent's) so it starts inside the parent")
         limit = np.minimum(limit, start_lim)
     if np.any(r > curv_lim):
         bad = s[r > curv_lim]

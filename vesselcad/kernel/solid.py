@@ -83,9 +83,13 @@ MESH_MIN_RADIUS_MM = 0.3
 #: Time limit (s) of OCCT's face unification after the union (normally ~0.2 s per
 #: tree; it can loop forever, see :func:`_tidy`).
 TIDY_TIMEOUT_S = 20.0
-#: Seconds OCCT's general fuse of all branch pipes may take (None: unbounded, in this process); a
-#: union that takes longer is abandoned for the branch-by-branch union.
+#: Seconds OCCT's general fuse of all branch pipes may take at most (None: unbounded, in this
+#: process); a union that takes longer is abandoned for the branch-by-branch union. Below that
+#: cap a tree of n pipes gets FUSE_TIMEOUT_BASE_S + n * FUSE_TIMEOUT_PER_PIPE_S (its fuse
+#: normally takes 0.2-0.5 s a pipe on 2 cores: a tree that overruns this is hung on one junction).
 FUSE_TIMEOUT_S: float | None = 60.0
+FUSE_TIMEOUT_BASE_S = 20.0
+FUSE_TIMEOUT_PER_PIPE_S = 2.0
 #: Seconds one union of a single branch with the tree may take; a branch whose union takes longer
 #: is left out (and named).
 STEP_FUSE_TIMEOUT_S: float | None = 20.0
@@ -1092,7 +1096,8 @@ def _tidy(shape: TopoDS_Shape, history: _History, warnings_out: list[str] | None
     return shape
 
 
-def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bool = True) -> VesselSolid:
+def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bool = True,
+               retry: Callable[[BranchPipe], tuple[BranchPipe, str] | None] | None = None) -> VesselSolid:
     """Union of branch pipes (listed parents before children) as one :class:`VesselSolid`.
 
     Parameters
@@ -1103,11 +1108,18 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
         Fuzzy value of the boolean (mm).
     parallel : bool
         Let OCCT use all cores for the boolean.
+    retry : callable, optional
+        Where, fusing branch by branch in tree order (the fallback), the union of
+        one branch with the tree fails or runs past :data:`STEP_FUSE_TIMEOUT_S`,
+        ``retry(pipe)`` may give another pipe of that branch and what was changed
+        (``VesselTree.solid``: its start narrowed), tried once before the branch is
+        left out. None: no second try.
 
     Returns
     -------
     VesselSolid
-        ``failed`` names the branches left out and why; the rest is always returned.
+        ``failed`` names the branches left out and why; the rest is always returned;
+        ``pipes`` holds the pipes that went into the union (a retried branch's second pipe).
 
     Raises
     ------
@@ -1128,11 +1140,13 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     if len(pipes) == 1:
         result = pipes[0].solid
     else:
+        limit = (None if FUSE_TIMEOUT_S is None
+                 else min(FUSE_TIMEOUT_S, FUSE_TIMEOUT_BASE_S + FUSE_TIMEOUT_PER_PIPE_S * len(pipes)))
         try:
-            op = _general_fuse([p.solid for p in pipes], fuzzy_mm, parallel, FUSE_TIMEOUT_S)
+            op = _general_fuse([p.solid for p in pipes], fuzzy_mm, parallel, limit)
         except TimeoutError:
             op = None
-            why = f"OCCT's general fuse did not finish within {FUSE_TIMEOUT_S:g} s"
+            why = f"OCCT's general fuse did not finish within {limit:g} s"
         if op is not None:
             shape = op.Shape()
             trial = _History()
@@ -1171,7 +1185,9 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     if result is None and len(pipes) > 1:
         warnings.append(f"{why}; fused the branches one by one in tree order")
         history = _History()
-        result, kept = _pairwise(pipes, fuzzy_mm, history, failed)
+        result, kept = _pairwise(pipes, fuzzy_mm, history, failed, retry, warnings)
+        swapped = {q.branch_id: q for q in kept}
+        pipes = [swapped.get(p.branch_id, p) for p in pipes]
         t1 = time.perf_counter()
         result = _tidy(result, history, warnings)
     if not general and not is_valid(result):
@@ -1549,32 +1565,49 @@ def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _His
     return keep
 
 
-def _pairwise(pipes: list[BranchPipe], fuzzy_mm: float, history: _History, failed: dict[int, str]
-              ) -> tuple[TopoDS_Shape, list[BranchPipe]]:
+def _pairwise(pipes: list[BranchPipe], fuzzy_mm: float, history: _History, failed: dict[int, str],
+              retry: Callable[[BranchPipe], tuple[BranchPipe, str] | None] | None = None,
+              notes: list[str] | None = None) -> tuple[TopoDS_Shape, list[BranchPipe]]:
+    """The pipes fused one by one in tree order; a branch whose union fails or runs past
+    :data:`STEP_FUSE_TIMEOUT_S` gets one more try with ``retry``'s pipe (what it changed is
+    added to ``notes``), else it is left out (in ``failed``). Returns the union and the
+    pipes in it."""
     current: TopoDS_Shape = pipes[0].solid
     current_volume = pipes[0].tube_volume_mm3
     kept = [pipes[0]]
     ops = []
-    for p in pipes[1:]:
-        if p.parent is not None and p.parent in failed:
-            failed[p.branch_id] = f"its parent branch {p.parent} was left out"
-            continue
+
+    def union(p: BranchPipe) -> tuple[Any, TopoDS_Shape, float] | str:
+        """The union with the tree so far, or why it is not one."""
         try:
             op = _general_fuse([current, p.solid], fuzzy_mm, timeout_s=STEP_FUSE_TIMEOUT_S)
         except TimeoutError:
-            failed[p.branch_id] = (f"OCCT's boolean union with the tree did not finish within "
-                                   f"{STEP_FUSE_TIMEOUT_S:g} s")
-            continue
+            return f"OCCT's boolean union with the tree did not finish within {STEP_FUSE_TIMEOUT_S:g} s"
         shape = op.Shape() if op is not None else None
         volume = _quick_volume(shape) if shape is not None else 0.0
         if (shape is None or _count_solids(shape) != 1 or not is_valid(shape)
                 or volume < VOLUME_SLACK * max(current_volume, p.tube_volume_mm3)
                 or not _holds(shape, np.vstack([p.trusted_probes(), *(q.trusted_probes()[:1] for q in kept
                                                                        if q.branch_id == p.parent)]))):
-            failed[p.branch_id] = "the boolean union with the tree failed"
+            return "the boolean union with the tree failed"
+        return op, shape, volume
+
+    for p in pipes[1:]:
+        if p.parent is not None and p.parent in failed:
+            failed[p.branch_id] = f"its parent branch {p.parent} was left out"
             continue
+        done = union(p)
+        if isinstance(done, str) and retry is not None and (second := retry(p)) is not None:
+            again = union(second[0])
+            if not isinstance(again, str):
+                if notes is not None:
+                    notes.append(f"branch {p.branch_id}: {done}; {second[1]}: fused")
+                p, done = second[0], again
+        if isinstance(done, str):
+            failed[p.branch_id] = done
+            continue
+        op, current, current_volume = done
         ops.append(op)
-        current, current_volume = shape, volume
         kept.append(p)
     history.ops.extend(ops)
     return current, kept
