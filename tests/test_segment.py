@@ -146,6 +146,10 @@ def test_any_size_and_dtype(seg, phantom_frames):
     assert lab_odd.shape == (1, 301, 299) and proba.shape == (1, 5, 301, 299)
     np.testing.assert_allclose(proba.sum(axis=1), 1.0, atol=1e-5)
     np.testing.assert_array_equal(proba.argmax(axis=1), lab_odd)
+    # labels alone come from the network's scores without the softmax: the same arg-max
+    # (up to pixels whose two best probabilities round to one float)
+    alone, (_, p3) = seg(frames[:3]), seg(frames[:3], return_proba=True)
+    assert (alone == p3.argmax(axis=1)).mean() >= 1.0 - 1e-5
     # a 1024 x 1024 frame is run at max_side and scaled back; vessels still where they were
     big = cv2.resize(f8, (1024, 1024), interpolation=cv2.INTER_LINEAR)
     lab_big = seg(big)

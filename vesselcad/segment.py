@@ -325,7 +325,7 @@ class Segmenter:
 
             starts = tqdm(starts, desc="segment", unit="batch")
         for s in starts:
-            p = self._run_batch(x[s:s + self.batch_size], bool(tta))
+            p = self._run_batch(x[s:s + self.batch_size], bool(tta), proba is not None)
             labels[s:s + len(p)] = p.argmax(axis=1)
             if proba is not None:
                 proba[s:s + len(p)] = p
@@ -334,7 +334,10 @@ class Segmenter:
             proba = proba[0] if proba is not None else None
         return (labels, proba) if return_proba else labels
 
-    def _run_batch(self, frames: np.ndarray, tta: bool = False) -> np.ndarray:
+    def _run_batch(self, frames: np.ndarray, tta: bool = False, proba: bool = True) -> np.ndarray:
+        """Class probabilities (N, C, H, W) of raw frames; with ``proba=False`` only their
+        arg-max is needed, and where nothing is averaged or resampled the network's scores are
+        returned as they are (the softmax keeps their order: ~5 % of a frame's time saved)."""
         n, h, w = frames.shape
         z = normalize_frames(frames)
         f = 1.0
@@ -365,15 +368,21 @@ class Segmenter:
                     ps = _resize_proba(ps, hh, ww)
                 p += ps
             p /= len(flips) * len(self.tta_scales)
+        elif not proba and f == 1.0:
+            return self._logits(_pad(z))[:, :, :hh, :ww]
         else:
             p = self._proba(_pad(z))[:, :, :hh, :ww]
         if f != 1.0:
             p = _resize_proba(p, h, w)
         return p
 
+    def _logits(self, z: np.ndarray) -> np.ndarray:
+        """The network's class scores (N, C, H, W) of normalized, padded frames (N, H, W)."""
+        return self._session.run([self._io.output], {self._io.input: z[:, None]})[0]
+
     def _proba(self, z: np.ndarray) -> np.ndarray:
         """Class probabilities (N, C, H, W) of normalized, padded frames (N, H, W)."""
-        logits = self._session.run([self._io.output], {self._io.input: z[:, None]})[0]
+        logits = self._logits(z)
         e = np.exp(logits - logits.max(axis=1, keepdims=True))
         return (e / e.sum(axis=1, keepdims=True)).astype(np.float32)
 
