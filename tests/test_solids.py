@@ -548,6 +548,8 @@ def test_a_domed_pipe_is_its_tube_plus_a_hemisphere():
     law = interpolate.make_interp_spline(s, np.full(len(s), r), k=3)
     solid = fuse_pipes([branch_pipe(0, "vessel", None, spine, law, end="dome")])
     assert solid.check()["valid"] and solid.check()["watertight"]
+    with pytest.raises(vc.ArgumentError, match="retry: expected None or a callable"):
+        fuse_pipes(solid.pipes, retry=0.7)
     assert solid.volume == pytest.approx(np.pi * r**2 * length + 2.0 / 3.0 * np.pi * r**3, rel=1e-6)
     dome = [BRepAdaptor_Surface(f) for f, t in solid.faces if t.role == "cap"]
     assert len(dome) == 1 and dome[0].GetType() == GeomAbs_Sphere

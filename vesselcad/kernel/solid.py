@@ -1128,6 +1128,9 @@ def fuse_pipes(pipes: list[BranchPipe], fuzzy_mm: float = FUZZY_MM, parallel: bo
     """
     if not pipes:
         raise GeometryError("fuse_pipes: no branch pipe to fuse")
+    if retry is not None and not callable(retry):
+        raise ArgumentError("retry: expected None or a callable taking a BranchPipe, got "
+                            f"{type(retry).__name__}")
     t0 = time.perf_counter()
     root = pipes[0].branch_id
     failed: dict[int, str] = {}
