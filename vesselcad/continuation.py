@@ -61,6 +61,17 @@ MIN_PX = 8.0
 MIN_RADIUS_AGREEMENT = 0.2
 #: Branch points passed in the two views within this many alignment cells are the same one.
 JOIN_CELLS = 8
+#: Unpaired stretches of a view at least this long (px) get a seed at their middle sample.
+SEED_MIN_PX = 20.0
+#: A seed's partner agrees within this reconstruction error (px; with the surface's penalty).
+SEED_MAX_PX = 1.5
+#: Every other agreeing sample of the other view must score at least this many times worse ...
+SEED_RATIO = 2.0
+#: ... than the best, and at least this (px) times the ratio (the samples lie 2 px apart, so an
+#: epipolar line passes a vessel's nearest sample by up to 1 px).
+SEED_FLOOR_PX = 0.25
+#: Samples of the other view within this distance (px) of the best partner are that vessel.
+SEED_SAME_PX = 6.0
 _BLOCKED = 1e4
 
 
@@ -428,6 +439,54 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
                 queue.append(new)
                 new_anchors.append(new)
     return out, new_anchors
+
+
+def seeds(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarray,
+          used_b: np.ndarray) -> list[tuple[int, int, int, int]]:
+    """Anchors in the middle of view A's unpaired stretches whose partner in view B is unambiguous.
+
+    For every run of unpaired samples of one branch at least ``SEED_MIN_PX``
+    long, its middle sample is paired with the unpaired sample of view B that
+    agrees best (``se`` holds the errors, with the heart surface's penalty
+    where :func:`vesselcad.matching._continuations` added it), provided it
+    agrees within ``SEED_MAX_PX`` and every other agreeing sample farther
+    than ``SEED_SAME_PX`` from it scores at least ``SEED_RATIO`` times worse.
+    Each seed gives two anchors, one for each direction of view A, with the
+    direction of view B whose next sample agrees better with view A's next.
+    """
+    out: list[tuple[int, int, int, int]] = []
+    rows, cols = se.E.shape[0] - 1, se.E.shape[1] - 1
+    cand_b = np.flatnonzero(~used_b & (se.map_b < cols))
+    if not len(cand_b):
+        return out
+    for k in np.unique(cha.branch):
+        s = np.flatnonzero(cha.branch == k)
+        f = ~used_a[s] & (se.map_a[s] < rows)
+        edges = np.flatnonzero(np.diff(np.r_[0, f.astype(np.int8), 0]))
+        for lo, hi in zip(edges[::2], edges[1::2], strict=True):
+            if (hi - lo - 1) * STEP_PX < SEED_MIN_PX:
+                continue
+            a = int(s[(lo + hi - 1) // 2])
+            e = se.E[se.map_a[a], se.map_b[cand_b]]
+            ok = e < SEED_MAX_PX
+            if not ok.any():
+                continue
+            eb, bb = e[ok], cand_b[ok]
+            j = int(np.argmin(eb))
+            b = int(bb[j])
+            far = np.linalg.norm(chb.pts[bb] - chb.pts[b], axis=1) > SEED_SAME_PX
+            if (eb[far] < SEED_RATIO * max(float(eb[j]), SEED_FLOOR_PX)).any():
+                continue
+            kb = int(chb.branch[b])
+            pos_b = [(cb, int(np.flatnonzero(chb.idx[cb] == b)[0])) for cb in (2 * kb, 2 * kb + 1)]
+            for ca in (2 * int(k), 2 * int(k) + 1):
+                ta = int(np.flatnonzero(cha.idx[ca] == a)[0])
+                # View B's direction is the one whose next sample agrees with view A's next.
+                a1 = cha.idx[ca, min(ta + 1, int(cha.n[ca]) - 1)]
+                errs = [se.at(np.array([a1]), chb.idx[cb, min(tb + 1, int(chb.n[cb]) - 1)][None])[0]
+                        for cb, tb in pos_b]
+                out.append((ca, ta) + pos_b[int(np.argmin(errs))])
+    return out
 
 
 def _anchors_along(cha: Chains, chb: Chains, cont: Continuation) -> list[tuple[int, int, int, int]]:

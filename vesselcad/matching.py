@@ -88,6 +88,8 @@ CHORD_PX = 8.0
 SURFACE_SIGMA_MIN_MM = 2.0
 #: Width of the surface prior in units of that spread (docs/centreline2d.md, "The heart's surface").
 SURFACE_WIDTH = 1.5
+#: Rounds of seeding unpaired stretches once the continuation finds nothing more (0: none).
+SEED_ROUNDS = 3
 
 
 @dataclass
@@ -395,7 +397,11 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     ellipsoid is fitted to the 3D points of that first choice (robustly: the
     heart's surface, on which coronary arteries and veins run), every
     candidate's gain is weighted by how far its 3D points leave it, and the
-    choice is made again; the continuation pays for leaving it too.
+    choice is made again; the continuation pays for leaving it too. Where the
+    continuation finds nothing more, unpaired stretches whose middle sample
+    has one partner in the other view that agrees and lies on that surface
+    are seeded there and grown both ways (``SEED_ROUNDS`` rounds;
+    docs/centreline2d.md, "Seeds").
 
     Parameters
     ----------
@@ -880,6 +886,18 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
         anchors = anchors + swap(new_b)
         found += got + [cont.Continuation(c.gain, c.cost, c.ib, c.ia, c.err, c.anchor) for c in got_b]
         if not got_b:
+            break
+    # Seeds: stretches both views show but no anchor reached, paired where the partner on the
+    # heart's surface is unambiguous, then grown both ways (docs/centreline2d.md, "Seeds").
+    for _round in range(SEED_ROUNDS if surface is not None else 0):
+        seeds = cont.seeds(se, cha, chb, used_a, used_b) + swap(cont.seeds(se.T, chb, cha, used_b, used_a))
+        if not seeds:
+            break
+        got, new = cont.continue_pairs(se, cha, chb, used_a, used_b, seeds, tol, mm_a, mm_b, cost_rate)
+        got_b, new_b = cont.continue_pairs(se.T, chb, cha, used_b, used_a, swap(seeds + new), tol, mm_b,
+                                             mm_a, cost_rate)
+        found += got + [cont.Continuation(c.gain, c.cost, c.ib, c.ia, c.err, c.anchor) for c in got_b]
+        if not got and not got_b:
             break
     out: list[BranchPair] = []
     for c in found:
