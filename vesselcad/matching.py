@@ -894,7 +894,10 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
         if not seeds:
             break
         got, new = cont.continue_pairs(se, cha, chb, used_a, used_b, seeds, tol, mm_a, mm_b, cost_rate)
-        got_b, new_b = cont.continue_pairs(se.T, chb, cha, used_b, used_a, swap(seeds + new), tol, mm_b,
+        # From view B's side: the new anchors, and the seeds nothing grew from on view A's side.
+        grown = {c.anchor for c in got}
+        rest = [s for s in seeds if s not in grown]
+        got_b, new_b = cont.continue_pairs(se.T, chb, cha, used_b, used_a, swap(rest + new), tol, mm_b,
                                              mm_a, cost_rate)
         found += got + [cont.Continuation(c.gain, c.cost, c.ib, c.ia, c.err, c.anchor) for c in got_b]
         if not got and not got_b:
