@@ -72,6 +72,8 @@ def test_every_landmark_matched_correctly(graphs):
         assert lm.error_px < 3.0
     assert m.roots == (ga.root, gb.root)
     assert not [u for u in m.unmatched if u.kind == "branch"]
+    # Every vessel of this tree has agreeing landmarks at both ends in both views.
+    assert [p.found_by for p in m.pairs] == ["landmarks"] * 5
 
 
 def test_branch_pairs_run_together_and_cover_both_trees(graphs):
@@ -207,6 +209,7 @@ def test_continuation_grows_a_seed_pair_through_both_trees(graphs):
         assert np.median(d) < 1.0, name
         # Pieces run proximal to distal along view A's branches.
         assert not p.reversed_a
+    assert {p.found_by for p in grown} == {"continuation"}
 
 
 def test_foreshortening_factor_follows_the_length_ratio():
@@ -374,8 +377,12 @@ def test_seeds_pair_stretches_no_anchor_reaches(seed, kind, monkeypatch):
     # centreline; with them 654 and 1308, while the share off the truth stays 0.19 and 0.01-0.04.
     import vesselcad.matching as matching
 
-    *_, on, off = _phantom_match(seed, kind)
+    *_, m, on, off = _phantom_match(seed, kind)
     monkeypatch.setattr(matching, "SEED_ROUNDS", 0)
-    *_, on0, off0 = _phantom_match(seed, kind)
+    *_, m0, on0, off0 = _phantom_match(seed, kind)
     assert on > 1.2 * on0
     assert off / (on + off) < 0.25
+    # The seeded pairs say so (report.json's "found_by"); they end at no landmark.
+    seeded = [p for p in m.pairs if p.found_by == "seed"]
+    assert seeded and all(p.start == p.end == (None, None) for p in seeded)
+    assert "seed" not in {p.found_by for p in m0.pairs}

@@ -222,6 +222,7 @@ def test_runs_without_a_stationary_object_are_matched_by_their_vessels(tmp_path)
     assert rec.phase.objects == [] and any("no stationary object" in w for w in rec.warnings)
     rep = json.loads(json.dumps(rec.report(), allow_nan=False))
     assert rep["phase_error_mm"] is None and rep["phase"]["objects"] == []
+    assert [b["found_by"] for b in rep["branches"]] == ["landmarks"] * len(rep["branches"])
     paths = rec.write(tmp_path)
     assert "epipolar consistency alone" in paths["report.html"].read_text()
     assert json.loads(paths["report.json"].read_text())["phase"]["error_mm"] is None

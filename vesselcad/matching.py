@@ -141,6 +141,12 @@ class BranchPair:
         Median radius in mm at the isocentre over both views.
     error_px, error_mm : float
         Mean reconstruction error along the alignment of the two pieces.
+    found_by : str
+        How the pair was found: ``'landmarks'`` (both ends at agreeing
+        landmarks), ``'one end'`` (from one agreeing landmark, as far as the
+        views agree), ``'continuation'`` (grown past another pair's end) or
+        ``'seed'`` (grown from a seed on the heart's surface, no landmark or
+        pair behind it: the weakest evidence).
     """
 
     a: int
@@ -158,6 +164,7 @@ class BranchPair:
     radius_mm: float
     error_px: float
     error_mm: float
+    found_by: str = "landmarks"
 
     @property
     def length_a_px(self) -> float:
@@ -876,6 +883,7 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
     # Grow from view A's side, then from view B's (a vessel that view A shows as one branch but
     # view B through a branch point, or the other way round), until neither finds more.
     found: list[cont.Continuation] = []
+    seeded: list[bool] = []
     swap = lambda anc: [(cb, tb, ca, ta) for ca, ta, cb, tb in anc]  # noqa: E731
     for _round in range(4):
         got, new = cont.continue_pairs(se, cha, chb, used_a, used_b, anchors, tol, mm_a, mm_b,
@@ -885,6 +893,7 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
                                              mm_a, cost_rate)
         anchors = anchors + swap(new_b)
         found += got + [cont.Continuation(c.gain, c.cost, c.ib, c.ia, c.err, c.anchor) for c in got_b]
+        seeded += [False] * (len(got) + len(got_b))
         if not got_b:
             break
     # Seeds: stretches both views show but no anchor reached, paired where the partner on the
@@ -900,10 +909,11 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
         got_b, new_b = cont.continue_pairs(se.T, chb, cha, used_b, used_a, swap(rest + new), tol, mm_b,
                                              mm_a, cost_rate)
         found += got + [cont.Continuation(c.gain, c.cost, c.ib, c.ia, c.err, c.anchor) for c in got_b]
+        seeded += [True] * (len(got) + len(got_b))
         if not got and not got_b:
             break
     out: list[BranchPair] = []
-    for c in found:
+    for c, from_seed in zip(found, seeded, strict=True):
         ka, kb = cha.branch[c.ia], chb.branch[c.ib]
         brk = np.flatnonzero((np.diff(ka) != 0) | (np.diff(kb) != 0)) + 1
         for lo, hi in zip(np.r_[0, brk], np.r_[brk, len(ka)], strict=True):
@@ -921,7 +931,8 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
                 reversed_b=bool(ends_b[1] < ends_b[0]), start=(None, None), end=(None, None),
                 points_a_px=pts_a, points_b_px=pts_b, radius_a_px=r_a, radius_b_px=r_b,
                 radius_mm=float(np.median(np.concatenate([r_a * mm_a, r_b * mm_b]))),
-                error_px=err, error_mm=err * 0.5 * (mm_a + mm_b))
+                error_px=err, error_mm=err * 0.5 * (mm_a + mm_b),
+                found_by="seed" if from_seed else "continuation")
             out.append(_flip(q) if q.reversed_a else q)
     return out
 
@@ -954,7 +965,7 @@ def _flip(p: BranchPair) -> BranchPair:
         reversed_b=not p.reversed_b, start=p.end, end=p.start, points_a_px=p.points_a_px[::-1].copy(),
         points_b_px=p.points_b_px[::-1].copy(), radius_a_px=p.radius_a_px[::-1].copy(),
         radius_b_px=p.radius_b_px[::-1].copy(), radius_mm=p.radius_mm, error_px=p.error_px,
-        error_mm=p.error_mm)
+        error_mm=p.error_mm, found_by=p.found_by)
 
 
 def _pieces(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph, c: _Cand,
@@ -988,7 +999,8 @@ def _pieces(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: CentrelineGraph
             reversed_b=pb.rev[kb], start=(na0, nb0), end=(na1, nb1), points_a_px=pts_a, points_b_px=pts_b,
             radius_a_px=r_a, radius_b_px=r_b,
             radius_mm=float(np.median(np.concatenate([r_a * mm_a, r_b * mm_b]))),
-            error_px=c.cost, error_mm=c.cost * 0.5 * (mm_a + mm_b)))
+            error_px=c.cost, error_mm=c.cost * 0.5 * (mm_a + mm_b),
+            found_by="landmarks" if closed else "one end"))
     return out
 
 

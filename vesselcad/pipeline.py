@@ -147,7 +147,7 @@ class BranchResult:
                                                         for k in ("mean", "sd", "max")},
             "reprojection_mm": None if rp is None else {k: round(getattr(rp, f"{k}_mm"), 4)
                                                         for k in ("mean", "sd", "max")},
-            "match_error_px": round(self.pair.error_px, 4),
+            "match_error_px": round(self.pair.error_px, 4), "found_by": self.pair.found_by,
             "ill_conditioned": round(self.ill_conditioned, 4),
             "warnings": list(self.warnings),
         }

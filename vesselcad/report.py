@@ -247,7 +247,8 @@ def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_
         mm = "" if rm is None else f"{rm['mean']:.3f}"
         parent = "" if b["parent"] is None else str(b["parent"])
         ga, gb = b["graph_branches"]
-        rows.append(f"<tr><td>{b['id']}</td><td>{ga} / {gb}</td><td>{parent}</td><td>{length}</td>"
+        rows.append(f"<tr><td>{b['id']}</td><td>{ga} / {gb}</td><td>{b['found_by']}</td><td>{parent}</td>"
+                    f"<td>{length}</td>"
                     f"<td>{px}</td><td>{mm}</td><td>{html.escape(b['status'])}</td></tr>")
     ref = report["refinement"]
     ref_txt = "off" if ref is None else (
@@ -297,7 +298,7 @@ LPS frame, seen from the front, head up.</div></div>
  width="{1120 if ph.consistency is not None else 560}"></div>
 </div>
 <h2>Branches</h2>
-<table><tr><th>id</th><th>2D branches A / B</th><th>parent</th><th>length mm</th>
+<table><tr><th>id</th><th>2D branches A / B</th><th>paired by</th><th>parent</th><th>length mm</th>
 <th>reprojection px mean / max</th><th>mm mean</th><th>status</th></tr>
 {''.join(rows)}</table>
 <h2>Warnings</h2><ul>{warn}</ul>
