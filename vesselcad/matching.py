@@ -146,7 +146,7 @@ class BranchPair:
         landmarks), ``'one end'`` (from one agreeing landmark, as far as the
         views agree), ``'continuation'`` (grown past another pair's end) or
         ``'seed'`` (grown from a seed on the heart's surface, no landmark or
-        pair behind it: the weakest evidence).
+        pair behind it).
     """
 
     a: int
