@@ -6,6 +6,9 @@ default, Adam with lr 5e-4 and weight decay 5e-4 as in the paper (decoupled, Ada
 default; ``--optimizer adam`` for the coupled L2 of rounds 1-6, which killed the
 bottleneck: see ``model.revive_dead_blocks``), cosine learning-rate decay, checkpoints every ``--ckpt-every``
 steps and at the end (``last.pt``), resumable (``--resume``), a progress bar,
+knowledge distillation from a trained network (``--teacher``, optionally with the student
+initialized from the teacher's strongest channels, ``--shrink``: how a narrower, faster
+network is trained),
 and a log (``log.csv``) of the loss and of the validation scores: vessel Dice on
 the real validation split and per-class IoU on a small phantom validation set.
 
@@ -31,7 +34,7 @@ import torch.nn.functional as F
 from .data import NOT_VESSEL, REAL_VAL_IDS, Pool, load_real, render_pool
 from .evaluate import iou_per_class
 from .hard_focus import load_hard
-from .model import DEFAULT_WIDTHS, N_CLASSES, build_model, revive_dead_blocks
+from .model import DEFAULT_WIDTHS, N_CLASSES, build_model, revive_dead_blocks, shrink
 from .torch_aug import BatchAugmenter
 
 #: Per-class weights of the cross-entropy (thin devices and balloons are rare).
@@ -68,6 +71,18 @@ def seg_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         dices.append(1 - (2 * (pk * g).sum() + 1) / (pk.sum() + g.sum() + 1))
     dice = torch.stack(dices).mean() if dices else torch.zeros((), device=logits.device)
     return ce + dice
+
+
+def distill_loss(student: torch.Tensor, teacher: torch.Tensor, temperature: float = 2.0) -> torch.Tensor:
+    """Mean per-pixel KL divergence of the student's from the teacher's softened class distribution.
+
+    Scaled by ``temperature**2`` so that its gradients keep their size whatever the temperature
+    (Hinton et al. 2015). Every pixel counts, also the unlabelled ones of real images.
+    """
+    t = temperature
+    log_s = F.log_softmax(student.float() / t, dim=1)
+    log_t = F.log_softmax(teacher.float() / t, dim=1)
+    return (log_t.exp() * (log_t - log_s)).sum(dim=1).mean() * t * t
 
 
 @torch.no_grad()
@@ -147,13 +162,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--init", help="start from these weights (fine-tuning)")
     ap.add_argument("--revive", action="store_true",
                     help="with --init: re-initialize blocks whose batch norms collapsed to zero")
+    ap.add_argument("--teacher", help="checkpoint of a trained network to distil from (its softened "
+                    "per-pixel class probabilities join the loss)")
+    ap.add_argument("--distill", type=float, default=1.0,
+                    help="with --teacher: weight of the distillation term")
+    ap.add_argument("--temperature", type=float, default=2.0, help="with --teacher: softmax temperature")
+    ap.add_argument("--shrink", nargs="?", const="teacher", default=None,
+                    help="start from the strongest channels (model.shrink) of this checkpoint of a wider "
+                    "network of the same kind (default: the --teacher) instead of random weights")
     ap.add_argument("--amp", action="store_true",
                     help="bfloat16 autocast (GPUs with bf16 tensor cores; CPUs with AMX or AVX-512: ~2-4x "
                     "faster than fp32; on AVX2-only CPUs ~25x slower)")
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
-    if a.revive and not a.init:
-        ap.error("--revive needs --init (the weights whose collapsed blocks to re-initialize)")
+    if a.shrink and a.init:
+        ap.error("--shrink and --init both give the starting weights: pass one")
+    if a.shrink == "teacher" and not a.teacher:
+        ap.error("--shrink without a checkpoint shrinks the --teacher: pass one")
+    if a.revive and not (a.init or a.shrink):
+        ap.error("--revive needs --init or --shrink (the weights whose collapsed blocks to re-initialize)")
 
     t_start = time.time()
     out = Path(a.out)
@@ -187,6 +214,25 @@ def main(argv: list[str] | None = None) -> int:
             prog = max(prog, (time.time() - t_limit_start) / max(a.time_limit - (t_limit_start - t_start), 1))
         return a.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(prog, 1.0))))
     revived: list[str] = []
+    teacher = None
+    if a.teacher or a.shrink:
+        from .export import load_checkpoint
+
+        teacher = load_checkpoint(a.teacher) if a.teacher else None
+    if a.shrink:
+        wide = teacher if a.shrink == "teacher" else load_checkpoint(a.shrink)
+        if wide.gated != model.gated:
+            ap.error(f"--shrink: {a.shrink} is a {'gated' if wide.gated else 'plain'} network, not {a.arch}")
+        model.load_state_dict(shrink(wide, widths).state_dict())
+        if a.revive:
+            revived = revive_dead_blocks(model)
+            print(f"revived: {', '.join(revived) or 'nothing'}")
+    if teacher is not None:
+        teacher = teacher.to(device)
+        if device.type == "cuda":
+            teacher = teacher.to(memory_format=torch.channels_last)
+        for prm in teacher.parameters():
+            prm.requires_grad_(False)
     if a.init:
         model.load_state_dict(torch.load(a.init, map_location=device)["model"])
         if a.revive:
@@ -264,6 +310,10 @@ def main(argv: list[str] | None = None) -> int:
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=a.amp):
             logits = model(x)
         loss = seg_loss(logits, t)
+        if teacher is not None:
+            with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=a.amp):
+                t_logits = teacher(x)
+            loss = loss + a.distill * distill_loss(logits, t_logits, a.temperature)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -560,3 +560,60 @@ def test_soup_averages_two_checkpoints_of_one_network(tmp_path):
     s = torch.load(tmp_path / "s.pt")["model"]
     k = next(k for k in s if s[k].is_floating_point())
     assert torch.allclose(s[k], 0.5 * (cks[0]["model"][k] + cks[1]["model"][k]), atol=1e-7)
+
+
+def test_shrink_drops_only_silent_channels():
+    """A wide network whose extra channels are silent (batch-norm scale and shift 0, so ReLU gives 0,
+    and no decoder reads the extra up-convolution outputs) computes exactly what its shrunk copy does."""
+    torch = pytest.importorskip("torch")
+    from segmentation_onnx.model import build_model, shrink
+
+    wide_w, small_w = (6, 8, 10, 12, 14), (4, 5, 7, 9, 11)
+    torch.manual_seed(0)
+    for arch in ("gated", "plain"):
+        m = build_model(arch, wide_w).eval()
+        g = torch.Generator().manual_seed(1)
+        with torch.no_grad():
+            for bn in (x for x in m.modules() if isinstance(x, torch.nn.BatchNorm2d)):
+                bn.weight.uniform_(0.5, 1.5, generator=g)
+                bn.bias.uniform_(-0.2, 0.2, generator=g)
+                bn.running_mean.uniform_(-0.1, 0.1, generator=g)
+                bn.running_var.uniform_(0.5, 2.0, generator=g)
+                n = bn.num_features
+                keep = small_w[wide_w.index(n)]
+                drop = torch.randperm(n, generator=g)[: n - keep]  # scattered, not the last channels
+                bn.weight[drop] = 0.0
+                bn.bias[drop] = 0.0
+            for dec, w, ws in zip(m.decoders, reversed(wide_w[:4]), reversed(small_w[:4]), strict=True):
+                drop = torch.randperm(w, generator=g)[: w - ws]
+                dec[0].weight[:, drop] = 0.0  # the decoder never reads these up-convolution outputs
+            if arch == "gated":
+                for gate in m.gates:
+                    gate.proj.weight.normal_(0.0, 0.3, generator=g)
+                    gate.proj.bias.normal_(0.0, 0.3, generator=g)
+        x = torch.randn(2, 1, 32, 48, generator=g)
+        s = shrink(m, small_w)
+        assert s.widths == small_w and s.gated == (arch == "gated")
+        assert sum(p.numel() for p in s.parameters()) < sum(p.numel() for p in m.parameters())
+        with torch.no_grad():
+            torch.testing.assert_close(s(x), m(x), atol=1e-5, rtol=1e-5)
+        with torch.no_grad():
+            torch.testing.assert_close(shrink(m, wide_w)(x), m(x))  # same widths: the same network
+    with pytest.raises(ValueError, match="widths"):
+        shrink(m, (8, 8, 8, 8, 8))  # wider than the source
+
+
+def test_distillation_loss_is_the_softened_kl_divergence():
+    torch = pytest.importorskip("torch")
+    from segmentation_onnx.train import distill_loss
+
+    # two classes, one pixel: teacher logits (0, ln 3) -> p = (1/4, 3/4) at T = 1
+    teacher = torch.tensor([0.0, float(np.log(3.0))]).reshape(1, 2, 1, 1)
+    student = torch.zeros(1, 2, 1, 1)  # q = (1/2, 1/2)
+    kl = 0.25 * np.log(0.25 / 0.5) + 0.75 * np.log(0.75 / 0.5)
+    assert abs(float(distill_loss(student, teacher, temperature=1.0)) - kl) < 1e-6
+    # T = 2: p = softmax(0, ln 3 / 2) = (1, sqrt 3) / (1 + sqrt 3), scaled by T^2
+    p = np.array([1.0, np.sqrt(3.0)]) / (1 + np.sqrt(3.0))
+    kl2 = float(np.sum(p * np.log(p / 0.5))) * 4
+    assert abs(float(distill_loss(student, teacher, temperature=2.0)) - kl2) < 1e-6
+    assert float(distill_loss(teacher, teacher)) == pytest.approx(0.0, abs=1e-7)
