@@ -10,8 +10,11 @@ Prints one table:
   and the share of those images where the catheter tip that motion phase matching takes from
   the labels is found at all and within 20 px of the drawn tip;
 * milliseconds per 512 x 512 frame with onnxruntime on ``--threads`` CPU threads;
-* the same for the int8 models: the bundled ``gated_unet_int8.onnx`` and the plain U-Net
-  quantized the same way (``segmentation_onnx.quantize.quantize_int8``, 7-bit weights);
+* the same for the half-width pair ("fast": channels 8-16-32-64-128, both distilled from the
+  bundled gated U-Net, ``gated_unet_fast.onnx`` and ``unet_fast.onnx``);
+* the same for the int8 models: the bundled ``gated_unet_int8.onnx`` and
+  ``gated_unet_fast_int8.onnx`` and the plain U-Nets quantized the same way
+  (``segmentation_onnx.quantize.quantize_int8``, 7-bit weights);
 * every model again with test-time augmentation (``Segmenter(tta=True)``: the mean class
   probabilities of the frame and its three mirror images, each at the frame's size and at 0.75
   of it; ``--no-tta`` skips these rows);
@@ -95,6 +98,7 @@ def main() -> int:
     ap.add_argument("--phantoms", type=int, default=120)
     ap.add_argument("--cache", default=str(Path.home() / ".cache/vesselcad/seg_test_set.npz"))
     ap.add_argument("--no-int8", action="store_true")
+    ap.add_argument("--no-fast", action="store_true", help="skip the half-width models")
     ap.add_argument("--no-tta", action="store_true", help="skip the rows with mirror test-time augmentation")
     ap.add_argument("--json")
     ap.add_argument("--render", help="write overlay pictures into this folder")
@@ -105,14 +109,22 @@ def main() -> int:
     print(f"phantom test set: {len(frames)} frames ({time.time() - t0:.0f} s)")
     models = {"gated U-Net fp32": bundled_model_path("gated_unet.onnx"),
               "plain U-Net fp32": bundled_model_path("unet.onnx")}
+    if not a.no_fast:  # the half-width pair (vc.Segmenter("fast") and its plain twin)
+        models["gated U-Net fast fp32"] = bundled_model_path("gated_unet_fast.onnx")
+        models["plain U-Net fast fp32"] = bundled_model_path("unet_fast.onnx")
     tmpdir = Path(tempfile.mkdtemp())
     if not a.no_int8:
         from segmentation_onnx.quantize import quantize_int8
 
-        # the bundled int8 model (vc.Segmenter("int8")); the baseline quantized the same way here
+        # the bundled int8 models (vc.Segmenter("int8"), "fast-int8"); the baselines quantized the
+        # same way here
         models["gated U-Net int8"] = bundled_model_path("gated_unet_int8.onnx")
         quantize_int8(models["plain U-Net fp32"], tmpdir / "unet_int8.onnx")
         models["plain U-Net int8"] = tmpdir / "unet_int8.onnx"
+        if not a.no_fast:
+            models["gated U-Net fast int8"] = bundled_model_path("gated_unet_fast_int8.onnx")
+            quantize_int8(models["plain U-Net fast fp32"], tmpdir / "unet_fast_int8.onnx")
+            models["plain U-Net fast int8"] = tmpdir / "unet_fast_int8.onnx"
     rows = {}
     for tta in (False,) if a.no_tta else (False, True):
         for name, path in models.items():

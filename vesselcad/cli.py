@@ -299,7 +299,8 @@ def _parser() -> argparse.ArgumentParser:
                            help="use frame I of run A and frame J of run B instead of phase matching")
         q.add_argument("--model", metavar="ONNX",
                        help="segmentation model: an .onnx file, or 'int8' for the bundled model's int8 "
-                       "version (~10x faster on CPUs with VNNI); default: the bundled fp32 model")
+                       "version (~10x faster on CPUs with VNNI), 'fast' / 'fast-int8' for the half-width "
+                       "network (~3x faster, a little less accurate); default: the bundled fp32 model")
         q.add_argument("--objects", default="auto",
                        help="stationary object for phase matching: auto, balloon, catheter, lead, or "
                        "vessels (none: the vessels' epipolar consistency alone; auto falls back to it "

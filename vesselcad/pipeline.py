@@ -749,7 +749,7 @@ def reconstruct(
     frames : (int, int), optional
         Use this frame pair instead of the one motion phase matching picks
         (its phase error is still reported).
-    model : path, {'fp32', 'int8'} or Segmenter, optional
+    model : path, {'fp32', 'int8', 'fast', 'fast-int8'} or Segmenter, optional
         Segmentation model (ONNX file or the name of a bundled one, see
         :class:`Segmenter`), or a loaded ``Segmenter`` to reuse across calls;
         default: the bundled gated U-Net (fp32).
