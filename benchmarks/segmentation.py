@@ -92,6 +92,29 @@ def render_pictures(out: Path, model: Path) -> list[Path]:
     return paths
 
 
+def render_fast_picture(out: Path, model: Path, fast: Path) -> Path:
+    """The default network (top row) and the fast one (bottom row) on two real validation images and two
+    held-out ARCADE frames (red vessel, green catheter; white outline: the manual vessel mask)."""
+    import cv2
+
+    from segmentation_onnx.catheter_labels import load_polylines
+    from segmentation_onnx.data import find_real_dir, load_real
+    from vesselcad.segment import Segmenter, overlay_labels
+
+    imgs, masks = load_real((4, 20))
+    _, test = load_polylines()
+    frames = [(im, gt) for im, gt in zip(imgs, masks, strict=True)]
+    frames += [(cv2.imread(str(find_real_dir() / "unlabelled" / f"{n}.png"), cv2.IMREAD_GRAYSCALE), None)
+               for n in test[:2]]
+    rows = []
+    for m in (model, fast):
+        seg = Segmenter(m)
+        rows.append(np.hstack([cv2.resize(overlay_labels(im, seg(im), truth=gt), (256, 256),
+                                          interpolation=cv2.INTER_AREA) for im, gt in frames]))
+    out.mkdir(parents=True, exist_ok=True)
+    return _write_png(out / "seg_fast_vs_default.png", np.vstack(rows))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--threads", type=int, default=2)
@@ -156,6 +179,9 @@ def main() -> int:
     if a.render:
         for p in render_pictures(Path(a.render), models["gated U-Net fp32"]):
             print("wrote", p)
+        if "gated U-Net fast fp32" in models:
+            print("wrote", render_fast_picture(Path(a.render), models["gated U-Net fp32"],
+                                               models["gated U-Net fast fp32"]))
     return 0
 
 
