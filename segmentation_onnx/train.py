@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     ap.add_argument("--init", help="start from these weights (fine-tuning)")
     ap.add_argument("--revive", action="store_true",
-                    help="with --init: re-initialize blocks whose batch norms collapsed to zero")
+                    help="with --init or --shrink: re-initialize blocks whose batch norms collapsed to zero")
     ap.add_argument("--teacher", help="checkpoint of a trained network to distil from (its softened "
                     "per-pixel class probabilities join the loss)")
     ap.add_argument("--distill", type=float, default=1.0,
@@ -223,7 +223,10 @@ def main(argv: list[str] | None = None) -> int:
         wide = teacher if a.shrink == "teacher" else load_checkpoint(a.shrink)
         if wide.gated != model.gated:
             ap.error(f"--shrink: {a.shrink} is a {'gated' if wide.gated else 'plain'} network, not {a.arch}")
-        model.load_state_dict(shrink(wide, widths).state_dict())
+        try:
+            model.load_state_dict(shrink(wide, widths).state_dict())
+        except ValueError as exc:
+            ap.error(f"--shrink {a.shrink}: {exc}")
         if a.revive:
             revived = revive_dead_blocks(model)
             print(f"revived: {', '.join(revived) or 'nothing'}")

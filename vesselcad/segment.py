@@ -37,8 +37,9 @@ __all__ = ["Segmenter", "CLASSES", "CLASS_COLOURS", "BUNDLED_MODELS", "TTA_SCALE
 CLASSES: tuple[str, ...] = ("background", "vessel", "catheter", "balloon", "lead")
 _MULTIPLE = 16
 _BUNDLED = "gated_unet.onnx"
-#: Names accepted as ``Segmenter(model=...)`` for the bundled gated U-Net: fp32 (default) and its
-#: static int8 quantization (7-bit weights; 10x faster on CPUs with VNNI, see MODEL_CARD.md).
+#: Names accepted as ``Segmenter(model=...)`` for the bundled gated U-Nets: fp32 (default) and its
+#: static int8 quantization (7-bit weights; 10x faster on CPUs with VNNI, see MODEL_CARD.md), and the
+#: half-width network distilled from it ("fast", ~3x faster, a little less accurate) and its int8 file.
 BUNDLED_MODELS: dict[str, str] = {"fp32": _BUNDLED, "int8": "gated_unet_int8.onnx",
                                   "fast": "gated_unet_fast.onnx", "fast-int8": "gated_unet_fast_int8.onnx"}
 #: Memory layouts of onnxruntime's CPU convolutions (``Segmenter(layout=...)``).
