@@ -456,6 +456,50 @@ def test_closed_triangulation_check_counts_each_edge_twice():
     assert _closed(np.vstack([v, v[3] + 1e-8]), np.vstack([t[:3], [[0, 4, 2]]]))  # round-off merges
 
 
+def test_merged_vertex_ids_group_as_rounding_does():
+    from vesselcad.kernel.solid import _merged_ids
+
+    # the grouping of np.unique over rounded rows, an independent implementation
+    rng = np.random.default_rng(3)
+    v = rng.integers(-150_000_000, 150_000_000, (20000, 3)) * 1e-6  # a 1 um grid
+    v = np.vstack([v, v[:5000] + 3e-9, v[5000:6000] + np.array([0.0, 2e-6, 0.0])])
+    _u, expected = np.unique(np.round(v, 6), axis=0, return_inverse=True)
+    ids = _merged_ids(v, 6)
+    assert ids.max() + 1 == len(_u) == 21000
+    np.testing.assert_array_equal(ids, expected.ravel())
+
+
+def test_check_is_computed_once_and_its_validity_part_agrees(y_solid):
+    chk = y_solid.check()
+    chk["valid"] = "changed by the caller"
+    again = y_solid.check()
+    assert again["valid"] is True and again["watertight"] is True
+    part = y_solid.validity()
+    assert part == {k: again[k] for k in ("valid", "solids", "free_edges", "watertight")}
+    assert again["volume_mm3"] == y_solid.volume == shape_volume(y_solid.shape)
+
+
+def test_a_picture_mesh_is_one_unchecked_triangulation(y_solid, monkeypatch):
+    import warnings
+
+    import vesselcad.kernel.solid as S
+
+    checks = []
+    monkeypatch.setattr(S, "_closed", lambda v, t: bool(checks.append(len(t))))  # never closed
+    monkeypatch.setattr(y_solid, "_meshed", None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", vc.VesselcadWarning)
+        m = y_solid.to_trimesh(0.05, 0.5, check_closed=False)
+    assert checks == []
+    np.testing.assert_allclose(m.bounds, y_solid.bounds, atol=0.05)  # within the deflection
+    # the checked path tries five deflections, then says the mesh is open
+    with pytest.warns(vc.VesselcadWarning, match="not be watertight"):
+        y_solid.to_trimesh(0.05, 0.5)
+    assert len(checks) == 5
+    monkeypatch.undo()
+    y_solid._meshed = None  # the shared fixture meshes afresh for the next test
+
+
 def _draped_mask(name):
     """The centreline graph of a real validation mask draped on a 60 mm sphere (as in
     examples/real_mask_to_solid.py), as a tree."""

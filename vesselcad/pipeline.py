@@ -226,9 +226,9 @@ class Reconstruction:
                           "header": h.to_dict(), "used": v.to_dict()}
         solid = None
         if self.solid is not None:
-            chk = self.solid.check()
+            chk = self.solid.validity()
             solid = {"valid": bool(chk["valid"]), "watertight": bool(chk["watertight"]),
-                     "solids": int(chk.get("solids", 1)), "volume_mm3": round(float(chk["volume_mm3"]), 3),
+                     "solids": int(chk.get("solids", 1)), "volume_mm3": round(float(self.solid.volume), 3),
                      "failed": {str(k): v for k, v in self.solid.failed.items()}}
         phase = self.phase.to_dict()
         return {

@@ -118,7 +118,7 @@ def _tube_mesh(rec: Reconstruction) -> tuple[np.ndarray, np.ndarray]:
 def _mesh_for_view(rec: Reconstruction) -> tuple[np.ndarray, np.ndarray, str]:
     if rec.solid is not None:
         try:
-            tm = rec.solid.to_trimesh(tolerance=0.05, angular_deflection=0.5)
+            tm = rec.solid.to_trimesh(tolerance=0.05, angular_deflection=0.5, check_closed=False)
             return np.asarray(tm.vertices), np.asarray(tm.faces), "fused solid"
         except Exception:  # fall back to tubes; the solid's own files report its state
             pass
