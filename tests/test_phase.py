@@ -40,6 +40,23 @@ def test_synchronized_pair_is_diagonal_with_tiny_error(sync_cs):
     assert area[m.frame_a] >= 0.5 * area.max()
 
 
+def test_geometry_that_does_not_fit_the_images_is_said(sync_cs):
+    import dataclasses
+
+    case, run_a, run_b = sync_cs
+    # View B's isocentre moved 30 mm across the plane of the two sources and the isocentre (a table
+    # shift the images cannot absorb): no pair's balloon rays meet any more.
+    normal = np.cross(run_a.view.source, run_b.view.source)
+    moved = dict(run_b.view.to_dict(), offset_mm=(30.0 * normal / np.linalg.norm(normal)).tolist())
+    shifted = dataclasses.replace(run_b, view=vc.CArmView.from_dict(moved))
+    ok = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels)
+    assert not any("no frame pair agrees" in w for w in ok.warnings)
+    bad = match_phase(run_a, shifted, case.run_a.labels, case.run_b.labels)
+    assert bad.error_mm > 5.0
+    said = [w for w in bad.warnings if "no frame pair agrees" in w]
+    assert len(said) == 1 and "balloon" in said[0] and "geometry" in said[0]
+
+
 def test_balloon_centres_match_the_truth(sync_cs):
     case, _, _ = sync_cs
     track = find_keypoints(case.run_a.labels, "balloon")
