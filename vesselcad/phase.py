@@ -45,8 +45,8 @@ __all__ = [
 
 #: Stationary objects, their label value and key point.
 OBJECTS = {"balloon": 3, "catheter": 2, "lead": 4}
-#: ``match_phase`` warns when even the chosen pair's key point does not triangulate better than
-#: this (mm at the isocentre): on consistent runs the best pair agrees to 0.0-0.45 mm (phantom,
+#: ``match_phase`` warns when no eligible pair's key point triangulates better than this (mm at
+#: the isocentre): on consistent runs the best pair agrees to 0.0-0.45 mm (phantom,
 #: 12 cases, also with 1.5° of header angle error; 1.2 mm with 3°), while geometry that does not
 #: fit the images (wrong angles or SID/SOD, a large table shift, another object in one run) leaves
 #: 4-13 mm (docs/phase.md, "When no pair agrees").
@@ -1251,9 +1251,9 @@ def match_phase(
             f"no frame pair agrees: the {'/'.join(used)} key point's reconstruction error is at least "
             f"{least:.1f} mm over the eligible pairs ({best:.1f} mm at the chosen pair ({i}, {j}); "
             f"consistent runs: under {DISAGREE_MM:g} mm). The runs' geometry (angles, SID/SOD, pixel "
-            "spacing) does not "
-            "fit the images, the patient or table moved a lot between the runs, or the key points lie on "
-            "different objects: the 3D result is unreliable; check the geometry and the phase picture")
+            "spacing) does not fit the images, the patient or table moved a lot between the runs, or the "
+            "key points lie on different objects: the 3D result is unreliable; check the geometry and the "
+            "phase picture")
     return PhaseMatch(
         frame_a=i, frame_b=j, error_mm=best, error_px=error_px, matrix=matrix, score=score,
         objects=used,

@@ -890,7 +890,7 @@ def _closed(verts: np.ndarray, tris: np.ndarray) -> bool:
     t = _merged_ids(verts, 6)[tris]
     edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
     edges = edges[edges[:, 0] != edges[:, 1]]
-    # each edge one int64 key (node ids < 2**31), counted by a 1D sort
+    # each edge one int64 key (ids below n = the vertex count, so a * n + b is unique), one 1D sort
     _e, counts = np.unique(edges[:, 0] * np.int64(len(verts)) + edges[:, 1], return_counts=True)
     return bool(np.all(counts == 2))
 
