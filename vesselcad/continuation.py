@@ -31,6 +31,7 @@ agrees.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -98,6 +99,21 @@ class Chains:
     @property
     def n_chains(self) -> int:
         return len(self.n)
+
+    @cached_property
+    def succ_matrix(self) -> np.ndarray:
+        """(C, C) flags: chain ``d`` continues chain ``c`` (``succ`` as a matrix)."""
+        m = np.zeros((len(self.n), len(self.n)), bool)
+        for c, ds in enumerate(self.succ):
+            m[c, ds] = True
+        return m
+
+    @cached_property
+    def links(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every (chain, predecessor) pair, by chain and then in ``pred``'s order."""
+        to = [t for t, fs in enumerate(self.pred) for _ in fs]
+        frm = [f for fs in self.pred for f in fs]
+        return np.asarray(to, dtype=np.int64), np.asarray(frm, dtype=np.int64)
 
     def position(self, branch: int, arc: float, forward: bool) -> tuple[int, int]:
         """Chain and position of the sample nearest ``arc`` on ``branch``, walking forward or back."""
@@ -200,15 +216,18 @@ def _align(se: SampleErrors, chb: Chains, used_b: np.ndarray, a_seq: np.ndarray,
     X_prev = np.zeros((C, L, 3))
     alive = np.zeros(C, bool)
     alive[cb] = True
+    succ_m = chb.succ_matrix
+    link_to, link_from = chb.links
+    pos = np.zeros(C, dtype=np.int64)  # row of each active chain in this step's arrays
+    shift = (B_SHARE - 1.0) * tau
     best, best_at = 0.0, None
     rows = 0
+    prev_act = np.zeros(0, dtype=np.int64)
     for i in range(n):
         # Work on the chains still in reach: those alive and the ones they lead into.
-        act = np.zeros(C, bool)
-        act[alive] = True
-        for c0 in np.flatnonzero(alive):
-            act[chb.succ[c0]] = True
-        act = np.flatnonzero(act)
+        act_m = alive | succ_m[alive].any(axis=0)
+        act = np.flatnonzero(act_m)
+        pos[act] = np.arange(len(act))
         s_act = sidx[act]
         e, x = se.row(a_seq[i], s_act)
         blk = blocked[act]
@@ -223,40 +242,42 @@ def _align(se: SampleErrors, chb: Chains, used_b: np.ndarray, a_seq: np.ndarray,
             D0 = Dp.copy()
             ptr_i = np.zeros(c.shape, dtype=np.int8)
         else:
-            D0 = Dp + c + (B_SHARE - 1.0) * tau + lw * _dist(x, Xp)
+            D0 = Dp + c + shift + lw * _dist(x, Xp)
             ptr_i = np.ones(c.shape, dtype=np.int8)
-            diag = Dp[:, :-1] + 2.0 * c[:, 1:] + (B_SHARE - 1.0) * tau + lw * _dist(x[:, 1:], Xp[:, :-1])
+            diag = Dp[:, :-1] + 2.0 * c[:, 1:] + shift + lw * _dist(x[:, 1:], Xp[:, :-1])
             take = diag < D0[:, 1:]
             D0[:, 1:] = np.where(take, diag, D0[:, 1:])
             ptr_i[:, 1:][take] = 2
-        links = [(r, f) for r, t in enumerate(act) for f in chb.pred[t] if alive[f]]
-        if i > 0:
-            for r, f in links:
-                v = (D_prev[f, last[f]] + 2.0 * c[r, 0] + (B_SHARE - 1.0) * tau
-                     + lw * _dist(x[r, 0], X_prev[f, last[f]]))
-                if v < D0[r, 0]:
-                    D0[r, 0] = v
+        # Moves through a branch point of view B: from the last sample of a chain (alive at the
+        # previous step: diagonal; in this step: a B-advance) to the first of one it leads into.
+        sel = act_m[link_to] & alive[link_from]
+        lt, lf = link_to[sel], link_from[sel]
+        lr, lend = pos[lt], last[lf]
+        if i > 0 and len(lt):
+            v = D_prev[lf, lend] + 2.0 * c[lr, 0] + shift + lw * _dist(x[lr, 0], X_prev[lf, lend])
+            for r, f, vk in zip(lr.tolist(), lf.tolist(), v.tolist(), strict=True):
+                if vk < D0[r, 0]:
+                    D0[r, 0] = vk
                     ptr_i[r, 0] = 4
                     jptr[i, act[r], 0] = f
         D = _scan(D0, h, ptr_i)
-        if links:
-            pos = {int(t): r for r, t in enumerate(act)}
-            changed = False
-            for r, f in links:
-                rf = pos.get(int(f))
-                if rf is None:
-                    continue
-                v = D[rf, last[f]] + c[r, 0] + lw * _dist(x[r, 0], x[rf, last[f]])
-                if v < D[r, 0] - 1e-12:
-                    D0[r, 0] = v
+        inside = act_m[lf]  # the predecessor is worked on in this step too
+        if inside.any():
+            lr, lf, lend = lr[inside], lf[inside], lend[inside]
+            rf = pos[lf]
+            v = D[rf, lend] + c[lr, 0] + lw * _dist(x[lr, 0], x[rf, lend])
+            better = v < D[lr, 0] - 1e-12
+            if better.any():
+                # In order: where two predecessors improve one chain the later one is kept.
+                for r, f, vk in zip(lr[better].tolist(), lf[better].tolist(), v[better].tolist(),
+                                    strict=True):
+                    D0[r, 0] = vk
                     ptr_i[r, 0] = 5
                     jptr[i, act[r], 1] = f
-                    changed = True
-            if changed:
                 D = _scan(D0, h, ptr_i)
         D = np.where(blk, np.inf, D)
         if i == 0:
-            r0 = int(np.flatnonzero(act == cb)[0])
+            r0 = int(pos[cb])
             D[r0, tb] = 0.0
             ptr_i[r0, tb] = 0
         ptr[i, act] = ptr_i
@@ -268,9 +289,10 @@ def _align(se: SampleErrors, chb: Chains, used_b: np.ndarray, a_seq: np.ndarray,
         rows = i + 1
         if m > best + STOP_PX:
             break
-        D_prev = np.full((C, L), np.inf)
+        D_prev[prev_act] = np.inf
         D_prev[act] = D
         X_prev[act] = x
+        prev_act = act
         alive = np.zeros(C, bool)
         alive[act[D.min(axis=1) <= best + STOP_PX]] = True
     if best_at is None:
@@ -313,11 +335,13 @@ def _dist(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def _scan(D0: np.ndarray, h: np.ndarray, ptr: np.ndarray) -> np.ndarray:
-    """Within-row relaxation along each chain: D[t] = min(D0[t], D[t-1] + h[t]) (pointer 3 where taken)."""
-    hc = np.cumsum(np.where(np.isfinite(h), h, _BLOCKED), axis=1)
-    with np.errstate(invalid="ignore"):
-        D = hc + np.minimum.accumulate(D0 - hc, axis=1)
-    D = np.where(np.isnan(D), np.inf, D)
+    """Within-row relaxation along each chain: D[t] = min(D0[t], D[t-1] + h[t]) (pointer 3 where taken).
+
+    ``h`` is finite (blocked cells cost ``_BLOCKED``) and ``D0`` finite or
+    +inf, so no NaN arises.
+    """
+    hc = np.cumsum(h, axis=1)
+    D = hc + np.minimum.accumulate(D0 - hc, axis=1)
     moved = D < D0 - 1e-12
     ptr[moved] = 3
     return np.minimum(D, D0)

@@ -35,7 +35,7 @@ from scipy import interpolate
 from .centreline2d import CentrelineGraph
 from .epipolar import backtrack
 from .errors import ArgumentError
-from .geometry import CArmView, check_view, reconstruction_error
+from .geometry import CArmView, check_view, reconstruction_error, triangulate
 from .splines import arc_length, fit_curve_2d
 from .surface import QuadricSurface, fit_quadric_surface
 
@@ -339,20 +339,33 @@ def _dtw(E: np.ndarray, X: np.ndarray) -> np.ndarray:
     h = E + lw * dh
     D = np.empty((n, m))
     D[0] = E[0, 0] + np.cumsum(np.r_[E[0, 0], h[0, 1:]])
+    # The row recursion's terms, computed for all rows at once (the same sums in the same order).
+    hc = np.cumsum(h, axis=1)
+    v = lw * dv
+    e2 = 2.0 * E[:, 1:]
+    d2 = lw * dd[:, 1:]
+    a = np.empty(m)
+    b = np.empty(m - 1)
     for i in range(1, n):
         prev = D[i - 1]
-        a = prev + E[i] + lw * dv[i]
-        a[1:] = np.minimum(a[1:], prev[:-1] + 2.0 * E[i, 1:] + lw * dd[i, 1:])
-        c = np.cumsum(h[i])
-        D[i] = c + np.minimum.accumulate(a - c)
+        np.add(prev, E[i], out=a)
+        a += v[i]
+        np.add(prev[:-1], e2[i], out=b)
+        b += d2[i]
+        np.minimum(a[1:], b, out=a[1:])
+        a -= hc[i]
+        np.minimum.accumulate(a, out=D[i])
+        D[i] += hc[i]
     return D
 
 
 def _errors(va: CArmView, vb: CArmView, pa: _Path, pb: _Path) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruction errors (px, capped) and triangulated points (mm) of all sample pairs."""
-    rec = reconstruction_error(va, pa.pts[:, None, :], vb, pb.pts[None, :, :])
-    return (np.minimum(np.nan_to_num(rec.error_px, nan=CAP_PX), CAP_PX),
-            np.nan_to_num(rec.points_mm, nan=1e6))
+    # reconstruction_error's pixel error without its mm figures (not needed here).
+    qa, qb = pa.pts[:, None, :], pb.pts[None, :, :]
+    X = triangulate(va, qa, vb, qb)
+    err = np.maximum(np.linalg.norm(va.project(X) - qa, axis=-1), np.linalg.norm(vb.project(X) - qb, axis=-1))
+    return np.minimum(np.nan_to_num(err, nan=CAP_PX), CAP_PX), np.nan_to_num(X, nan=1e6)
 
 
 def _compare(va: CArmView, vb: CArmView, pa: _Path, pb: _Path
