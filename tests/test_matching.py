@@ -386,3 +386,19 @@ def test_seeds_pair_stretches_no_anchor_reaches(seed, kind, monkeypatch):
     seeded = [p for p in m.pairs if p.found_by == "seed"]
     assert seeded and all(p.start == p.end == (None, None) for p in seeded)
     assert "seed" not in {p.found_by for p in m0.pairs}
+
+
+@pytest.mark.parametrize("seed, kind", [(1009, "lca"), (1021, "lca")])
+def test_roots_that_agree_are_paired_without_a_branch_pair_from_them(seed, kind):
+    # In these two cases the left main is foreshortened to its bifurcation in view B (the root is
+    # a branch point there), so no branch pair starts at the two roots; they still agree (0.1 and
+    # 3.6 px) and are both the ostium: a landmark pair of their own, which triangulates onto the
+    # true ostium, and no unmatched landmark reports them.
+    case, i, m, _, _ = _phantom_match(seed, kind)
+    ga_root, gb_root = m.roots
+    assert gb_root is not None and not any(p.start == m.roots for p in m.pairs)
+    ostium = np.asarray(next(b for b in case.run_a.trees[i]["branches"] if b["parent"] is None)["points"],
+                        float)[0]
+    assert np.linalg.norm(m.root_pair.point_mm - ostium) < 3.0
+    assert not [u for u in m.unmatched if u.kind == "landmark" and u.index == (ga_root if u.view == "a"
+                                                                                else gb_root)]

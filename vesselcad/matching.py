@@ -411,7 +411,9 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     chosen (an integer program solved with HiGHS): every landmark is paired
     with at most one landmark and every branch used once, so the result
     respects the topology of both trees; a chain matched to one branch marks
-    a branch point seen in one view only. Finally each accepted pair is
+    a branch point seen in one view only. Two roots that agree are the
+    ostium in both views and are paired even where no chosen branch pair
+    starts at them. Finally each accepted pair is
     continued past its ends, along both views' skeleton graphs, for as long
     as the two views agree (``continuation``). With ``surface_prior`` an
     ellipsoid is fitted to the 3D points of that first choice (robustly: the
@@ -549,6 +551,17 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
                 c.gain *= _surface_factor(surface, sigma, c.points_mm)
             cands.sort(key=lambda c: -c.gain)
             accepted, map_ab, map_ba, only_a, only_b, used_a, used_b = _select(cands)
+
+    # Two roots that agree are the ostium in both views (the catheter's tip): a landmark pair of
+    # their own, whether or not a branch pair starting there was chosen (the first stretch of the
+    # vessel may be foreshortened or hidden under the catheter in one view). With no branch pair
+    # to confirm them they must agree within the thinner vessel's radius, not the mean of the two.
+    if (ga.root is not None and gb.root is not None and ok_lm[ga.root, gb.root]
+            and lm_err[ga.root, gb.root] <= landmark_tol_px + 0.5 * min(ra_px[ga.root], rb_px[gb.root])
+            and ga.root not in map_ab and gb.root not in map_ba and ga.root not in only_a
+            and gb.root not in only_b):
+        map_ab[ga.root] = gb.root
+        map_ba[gb.root] = ga.root
 
     # Orientation: proximal first, by view A's tree (depth from the root).
     depth_a = _depths(ga)
