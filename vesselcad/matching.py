@@ -364,7 +364,8 @@ def _errors(va: CArmView, vb: CArmView, pa: _Path, pb: _Path) -> tuple[np.ndarra
     # reconstruction_error's pixel error without its mm figures (not needed here).
     qa, qb = pa.pts[:, None, :], pb.pts[None, :, :]
     X = triangulate(va, qa, vb, qb)
-    err = np.maximum(np.linalg.norm(va.project(X) - qa, axis=-1), np.linalg.norm(vb.project(X) - qb, axis=-1))
+    err = np.maximum(np.linalg.norm(va.project(X) - qa, axis=-1),
+                     np.linalg.norm(vb.project(X) - qb, axis=-1))
     return np.minimum(np.nan_to_num(err, nan=CAP_PX), CAP_PX), np.nan_to_num(X, nan=1e6)
 
 
