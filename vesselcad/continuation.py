@@ -261,9 +261,7 @@ def _align(se: SampleErrors, chb: Chains, used_b: np.ndarray, a_seq: np.ndarray,
                     ptr_i[r, 0] = 4
                     jptr[i, act[r], 0] = f
         D = _scan(D0, h, ptr_i)
-        inside = act_m[lf]  # the predecessor is worked on in this step too
-        if inside.any():
-            lr, lf, lend = lr[inside], lf[inside], lend[inside]
+        if len(lf):  # a predecessor alive at the last step is worked on in this one too
             rf = pos[lf]
             v = D[rf, lend] + c[lr, 0] + lw * _dist(x[lr, 0], x[rf, lend])
             better = v < D[lr, 0] - 1e-12
