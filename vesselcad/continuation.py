@@ -35,8 +35,9 @@ from functools import cached_property
 
 import numpy as np
 
+from . import _dp
 from .centreline2d import CentrelineGraph
-from .geometry import CArmView, triangulate
+from .geometry import CArmView
 from .matching import (
     CAP_MM,
     CAP_PX,
@@ -45,6 +46,7 @@ from .matching import (
     STEP_PX,
     _cost_factor,
     _foreshortening_factor,
+    _pair_errors,
     _radius_factor,
 )
 from .matching import OPEN_TAU as TAU  # a continuation runs while the error stays below TAU * tol
@@ -202,147 +204,17 @@ def _align(se: SampleErrors, chb: Chains, used_b: np.ndarray, a_seq: np.ndarray,
     Returns (score, A samples, B samples, errors) of the best alignment, or
     None when none gains anything. Row 0 is the anchor (score 0).
     """
-    C, L = chb.idx.shape
-    valid = chb.idx >= 0
-    sidx = np.where(valid, chb.idx, 0)
-    blocked = used_b[sidx] | ~valid
-    lw = LENGTH_WEIGHT
-    n = len(a_seq)
-    last = chb.n - 1
-    ptr = np.zeros((n, C, L), dtype=np.int8)  # 1 A-advance, 2 diagonal, 3 B-advance, 4/5 via a junction
-    jptr = np.full((n, C, 2), -1, dtype=np.int64)  # predecessor chain of position 0: (diagonal, B-advance)
-    D_prev = np.full((C, L), np.inf)
-    D_prev[cb, tb] = 0.0
-    X_prev = np.zeros((C, L, 3))
-    alive = np.zeros(C, bool)
-    alive[cb] = True
-    succ_m = chb.succ_matrix
     link_to, link_from = chb.links
-    pos = np.zeros(C, dtype=np.int64)  # row of each active chain in this step's arrays
-    shift = (B_SHARE - 1.0) * tau
-    best, best_at = 0.0, None
-    rows = 0
-    prev_act = np.zeros(0, dtype=np.int64)
-    for i in range(n):
-        # Work on the chains still in reach: those alive and the ones they lead into.
-        act_m = alive | succ_m[alive].any(axis=0)
-        act = np.flatnonzero(act_m)
-        pos[act] = np.arange(len(act))
-        s_act = sidx[act]
-        e, x = se.row(a_seq[i], s_act)
-        blk = blocked[act]
-        # A step of view A earns tau, a step of view B B_SHARE * tau: a longer path in view B
-        # (another vessel beyond a branch point) is not preferred for its length alone.
-        c = np.where(blk, _BLOCKED, e - B_SHARE * tau)
-        dh = np.zeros(c.shape)
-        dh[:, 1:] = _dist(x[:, 1:], x[:, :-1])
-        h = c + lw * dh
-        Dp, Xp = D_prev[act], X_prev[act]
-        if i == 0:
-            D0 = Dp.copy()
-            ptr_i = np.zeros(c.shape, dtype=np.int8)
-        else:
-            D0 = Dp + c + shift + lw * _dist(x, Xp)
-            ptr_i = np.ones(c.shape, dtype=np.int8)
-            diag = Dp[:, :-1] + 2.0 * c[:, 1:] + shift + lw * _dist(x[:, 1:], Xp[:, :-1])
-            take = diag < D0[:, 1:]
-            D0[:, 1:] = np.where(take, diag, D0[:, 1:])
-            ptr_i[:, 1:][take] = 2
-        # Moves through a branch point of view B: from the last sample of a chain (alive at the
-        # previous step: diagonal; in this step: a B-advance) to the first of one it leads into.
-        sel = act_m[link_to] & alive[link_from]
-        lt, lf = link_to[sel], link_from[sel]
-        lr, lend = pos[lt], last[lf]
-        if i > 0 and len(lt):
-            v = D_prev[lf, lend] + 2.0 * c[lr, 0] + shift + lw * _dist(x[lr, 0], X_prev[lf, lend])
-            for r, f, vk in zip(lr.tolist(), lf.tolist(), v.tolist(), strict=True):
-                if vk < D0[r, 0]:
-                    D0[r, 0] = vk
-                    ptr_i[r, 0] = 4
-                    jptr[i, act[r], 0] = f
-        D = _scan(D0, h, ptr_i)
-        if len(lf):  # a predecessor alive at the last step is worked on in this one too
-            rf = pos[lf]
-            v = D[rf, lend] + c[lr, 0] + lw * _dist(x[lr, 0], x[rf, lend])
-            better = v < D[lr, 0] - 1e-12
-            if better.any():
-                # In order: where two predecessors improve one chain the later one is kept.
-                for r, f, vk in zip(lr[better].tolist(), lf[better].tolist(), v[better].tolist(),
-                                    strict=True):
-                    D0[r, 0] = vk
-                    ptr_i[r, 0] = 5
-                    jptr[i, act[r], 1] = f
-                D = _scan(D0, h, ptr_i)
-        D = np.where(blk, np.inf, D)
-        if i == 0:
-            r0 = int(pos[cb])
-            D[r0, tb] = 0.0
-            ptr_i[r0, tb] = 0
-        ptr[i, act] = ptr_i
-        m = float(D.min())
-        if i > 0 and m < best:
-            best = m
-            r, t = np.unravel_index(int(np.argmin(D)), D.shape)
-            best_at = (i, int(act[r]), int(t))
-        rows = i + 1
-        if m > best + STOP_PX:
-            break
-        D_prev[prev_act] = np.inf
-        D_prev[act] = D
-        X_prev[act] = x
-        prev_act = act
-        alive = np.zeros(C, bool)
-        alive[act[D.min(axis=1) <= best + STOP_PX]] = True
-    if best_at is None:
+    # The compiled program reads the arrays in their stored (C) order: one compilation.
+    E, X = (se.E.T, se.X.transpose(1, 0, 2)) if se.swapped else (se.E, se.X)
+    best, cells = _dp.align(E, X, se.swapped, se.map_a, se.map_b, chb.idx, chb.n, chb.succ_matrix,
+                            link_to, link_from, used_b, a_seq, cb, tb, tau, LENGTH_WEIGHT, B_SHARE,
+                            STOP_PX, _BLOCKED, CAP_MM)
+    if len(cells) == 0:
         return None
-    # Trace back to the anchor.
-    i, c_, t_ = best_at
-    cells = []
-    while True:
-        cells.append((i, c_, t_))
-        p = ptr[i, c_, t_]
-        if i == 0 and c_ == cb and t_ == tb:
-            break
-        if p == 1:
-            i -= 1
-        elif p == 2:
-            i, t_ = i - 1, t_ - 1
-        elif p == 3:
-            t_ -= 1
-        elif p == 4:
-            c_ = int(jptr[i, c_, 0])
-            i, t_ = i - 1, int(last[c_])
-        elif p == 5:
-            c_ = int(jptr[i, c_, 1])
-            t_ = int(last[c_])
-        else:  # a start cell other than the anchor cannot occur
-            return None
-        if i < 0 or i >= rows:
-            return None
-    cells.reverse()
-    ci = np.array(cells)
-    ib = chb.idx[ci[:, 1], ci[:, 2]]
-    ia = a_seq[ci[:, 0]]
+    ib = chb.idx[cells[:, 1], cells[:, 2]]
+    ia = a_seq[cells[:, 0]]
     return best, ia, ib, se.at(ia, ib)
-
-
-def _dist(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Capped Euclidean distance (mm) along the last axis."""
-    d = p - q
-    return np.minimum(np.sqrt(np.einsum("...k,...k->...", d, d)), CAP_MM)
-
-
-def _scan(D0: np.ndarray, h: np.ndarray, ptr: np.ndarray) -> np.ndarray:
-    """Within-row relaxation along each chain: D[t] = min(D0[t], D[t-1] + h[t]) (pointer 3 where taken).
-
-    ``h`` is finite (blocked cells cost ``_BLOCKED``) and ``D0`` finite or
-    +inf, so no NaN arises.
-    """
-    hc = np.cumsum(h, axis=1)
-    D = hc + np.minimum.accumulate(D0 - hc, axis=1)
-    moved = D < D0 - 1e-12
-    ptr[moved] = 3
-    return np.minimum(D, D0)
 
 
 @dataclass
@@ -357,6 +229,7 @@ class SampleErrors:
     X: np.ndarray  # (na + 1, nb + 1, 3)
     map_a: np.ndarray  # (S_a,) row of each sample of view A (na where not computed)
     map_b: np.ndarray  # (S_b,)
+    swapped: bool = False  # E and X are transposed views (the roles of the views swapped)
 
     def row(self, a: int, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ra, cb = self.map_a[a], self.map_b[b]
@@ -367,23 +240,18 @@ class SampleErrors:
 
     @property
     def T(self) -> SampleErrors:
-        return SampleErrors(self.E.T, self.X.transpose(1, 0, 2), self.map_b, self.map_a)
+        return SampleErrors(self.E.T, self.X.transpose(1, 0, 2), self.map_b, self.map_a, not self.swapped)
 
 
 def sample_errors(va: CArmView, vb: CArmView, cha: Chains, chb: Chains, free_a: np.ndarray,
                   free_b: np.ndarray) -> SampleErrors:
     """Errors and points of every pair of the samples flagged in ``free_a`` and ``free_b``."""
     ia, ib = np.flatnonzero(free_a), np.flatnonzero(free_b)
-    pa, pb = cha.pts[ia][:, None, :], chb.pts[ib][None, :, :]
-    X = triangulate(va, pa, vb, pb)
-    ea = va.project(X) - pa
-    eb = vb.project(X) - pb
-    with np.errstate(invalid="ignore"):
-        E = np.sqrt(np.maximum(np.einsum("...k,...k->...", ea, ea), np.einsum("...k,...k->...", eb, eb)))
+    E, X = _pair_errors(va, cha.pts[ia], vb, chb.pts[ib])
     Ep = np.full((len(ia) + 1, len(ib) + 1), CAP_PX)
-    Ep[:-1, :-1] = np.minimum(np.nan_to_num(E, nan=CAP_PX), CAP_PX)
+    Ep[:-1, :-1] = E
     Xp = np.zeros((len(ia) + 1, len(ib) + 1, 3))
-    Xp[:-1, :-1] = np.nan_to_num(X, nan=1e6)
+    Xp[:-1, :-1] = X
     map_a = np.full(len(free_a), len(ia), dtype=np.int64)
     map_a[ia] = np.arange(len(ia))
     map_b = np.full(len(free_b), len(ib), dtype=np.int64)

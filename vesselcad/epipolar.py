@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import interpolate
 
+from . import _dp
 from .errors import ArgumentError
 from .geometry import CArmView, check_view
 
@@ -133,31 +134,12 @@ def backtrack(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Monotone path of an accumulated-cost matrix from (0, 0) to its last cell.
 
     Walks back from the last cell, each time to the cheapest of the diagonal,
-    upper and left neighbours (a sequential walk: each step depends on the last).
+    upper and left neighbours (the first of equals), along the first row and
+    column straight to (0, 0); compiled (:mod:`vesselcad._dp`).
     """
-    na, nb = D.shape
-    # The step taken back out of every cell, for all cells at once (0 diagonal,
-    # 1 up, 2 left; first row and column can only go left and up); the walk
-    # itself then only reads it.
-    move = np.empty((na, nb), dtype=np.int8)
-    move[0, :] = 2
-    move[:, 0] = 1
-    if na > 1 and nb > 1:
-        move[1:, 1:] = np.argmin(np.stack((D[:-1, :-1], D[:-1, 1:], D[1:, :-1])), axis=0)
-    flat = move.ravel().tolist()
-    i, j = na - 1, nb - 1
-    path_i, path_j = [i], [j]
-    while i > 0 or j > 0:
-        k = flat[i * nb + j]
-        if k == 0:
-            i, j = i - 1, j - 1
-        elif k == 1:
-            i -= 1
-        else:
-            j -= 1
-        path_i.append(i)
-        path_j.append(j)
-    return np.array(path_i[::-1]), np.array(path_j[::-1])
+    if D.ndim != 2 or 0 in D.shape:
+        raise ArgumentError(f"D: expected a non-empty 2D array, got shape {D.shape}")
+    return _dp.backtrack(np.ascontiguousarray(D, dtype=float))
 
 
 def sample_curve(spline: interpolate.BSpline, step_px: float, max_samples: int = 100000

@@ -32,10 +32,11 @@ import networkx as nx
 import numpy as np
 from scipy import interpolate
 
+from . import _dp
 from .centreline2d import CentrelineGraph
 from .epipolar import backtrack
 from .errors import ArgumentError
-from .geometry import CArmView, check_view, reconstruction_error, triangulate
+from .geometry import CArmView, check_view, reconstruction_error
 from .splines import arc_length, fit_curve_2d
 from .surface import QuadricSurface, fit_quadric_surface
 
@@ -326,47 +327,28 @@ def _dtw(E: np.ndarray, X: np.ndarray) -> np.ndarray:
     of the two cells: among correspondences that reproject equally well (a
     vessel running along an epipolar line) the shortest 3D curve wins.
     """
-    n, m = E.shape
-    if n > m:  # the recursion is symmetric: loop over the shorter side
+    if E.shape[0] > E.shape[1]:  # the recursion is symmetric: loop over the shorter side
         return _dtw(E.T, X.transpose(1, 0, 2)).T
-    lw = LENGTH_WEIGHT
-    dv = np.zeros((n, m))
-    dh = np.zeros((n, m))
-    dd = np.zeros((n, m))
-    dv[1:] = np.minimum(np.linalg.norm(X[1:] - X[:-1], axis=-1), CAP_MM)
-    dh[:, 1:] = np.minimum(np.linalg.norm(X[:, 1:] - X[:, :-1], axis=-1), CAP_MM)
-    dd[1:, 1:] = np.minimum(np.linalg.norm(X[1:, 1:] - X[:-1, :-1], axis=-1), CAP_MM)
-    h = E + lw * dh
-    D = np.empty((n, m))
-    D[0] = E[0, 0] + np.cumsum(np.r_[E[0, 0], h[0, 1:]])
-    # The row recursion's terms, computed for all rows at once (the same sums in the same order).
-    hc = np.cumsum(h, axis=1)
-    v = lw * dv
-    e2 = 2.0 * E[:, 1:]
-    d2 = lw * dd[:, 1:]
-    a = np.empty(m)
-    b = np.empty(m - 1)
-    for i in range(1, n):
-        prev = D[i - 1]
-        np.add(prev, E[i], out=a)
-        a += v[i]
-        np.add(prev[:-1], e2[i], out=b)
-        b += d2[i]
-        np.minimum(a[1:], b, out=a[1:])
-        a -= hc[i]
-        np.minimum.accumulate(a, out=D[i])
-        D[i] += hc[i]
-    return D
+    return _dp.dtw(np.ascontiguousarray(E), np.ascontiguousarray(X), LENGTH_WEIGHT, CAP_MM)
 
 
 def _errors(va: CArmView, vb: CArmView, pa: _Path, pb: _Path) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruction errors (px, capped) and triangulated points (mm) of all sample pairs."""
-    # reconstruction_error's pixel error without its mm figures (not needed here).
-    qa, qb = pa.pts[:, None, :], pb.pts[None, :, :]
-    X = triangulate(va, qa, vb, qb)
-    err = np.maximum(np.linalg.norm(va.project(X) - qa, axis=-1),
-                     np.linalg.norm(vb.project(X) - qb, axis=-1))
-    return np.minimum(np.nan_to_num(err, nan=CAP_PX), CAP_PX), np.nan_to_num(X, nan=1e6)
+    return _pair_errors(va, pa.pts, vb, pb.pts)
+
+
+def _pair_errors(va: CArmView, qa: np.ndarray, vb: CArmView, qb: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Errors (px, capped at ``CAP_PX``) and ray mid-points (mm) of all pairs of pixels ``qa`` x ``qb``.
+
+    :func:`vesselcad.geometry.reconstruction_error`'s pixel error, compiled
+    (:mod:`vesselcad._dp`); where no point exists (parallel rays) the error
+    is the cap and the point lies far off (1e6 mm).
+    """
+    oa, da = va.ray(qa)
+    ob, db = vb.ray(qb)
+    return _dp.pair_errors(oa, da, ob, db, va.matrix, vb.matrix, np.ascontiguousarray(qa, dtype=float),
+                           np.ascontiguousarray(qb, dtype=float), CAP_PX, 1e6)
 
 
 def _compare(va: CArmView, vb: CArmView, pa: _Path, pb: _Path
