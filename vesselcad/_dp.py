@@ -6,10 +6,13 @@ row by row over small arrays: written with numpy, each row costs a few dozen
 array calls and the matching spent most of its time in their overhead. Here
 they are plain loops compiled by numba (cached on disk after the first call).
 
-Each loop does the same floating-point operations in the same order as the
-array code it replaces (cumulative sums and running minima left to right,
-sums of three squares as ``(x*x + y*y) + z*z``), so the alignments, and the
-matches built from them, are the same.
+The dynamic programs do the same floating-point operations in the same
+order as the array code they replace (cumulative sums and running minima left
+to right, sums of three squares as ``(x*x + y*y) + z*z``). The error tables of
+sample pairs (:func:`pair_errors`) agree with
+:func:`vesselcad.geometry.reconstruction_error` to about 1e-13 px (the array
+code's matrix products round differently); on 45 phantom cases the matches
+were the same, but for one tie.
 """
 
 from __future__ import annotations
