@@ -273,6 +273,33 @@ def test_radius_field_assigns_points_to_their_vessel():
     assert cb(2, 1, 8.0, 0.4, 10.0, 1e22) == pytest.approx(0.15, rel=1e-6)
 
 
+def test_size_near_short_edges_grades_from_the_nearest_point_and_its_least_size():
+    # One vessel of radius 1 along z (size 0.3 there); three points that need small elements,
+    # the first listed twice (one size per close partner): its least size counts.
+    z = np.linspace(0, 20, 81)
+    field = RadiusField(np.c_[np.zeros_like(z), np.zeros_like(z), z], np.ones(81))
+    pts = np.array([[1.0, 0.0, 5.0], [1.0, 0.0, 5.0], [0.0, 1.0, 9.0], [-1.0, 0.0, 9.3]])
+    sizes = np.array([0.05, 0.01, 0.02, 0.04])
+    grading = 0.3
+    cb = field.size_callback(0.3, 0.001, 10.0, refine=(pts, sizes), grading=grading)
+    assert cb(2, 1, 1.0, 0.0, 5.0, 1e22) == pytest.approx(0.01, rel=1e-6)
+    assert cb(2, 1, 0.0, 1.0, 9.0, 1e22) == pytest.approx(0.02, rel=1e-6)
+    assert cb(2, 1, -1.0, 0.0, 9.3, 1e22) == pytest.approx(0.04, rel=1e-6)
+    # Within 0.27 mm of them (voxels of 0.25 mm whose centre lies within 2 voxels of a point, where
+    # the callback looks the point up): no larger than the size graded from the nearest point (brute
+    # force), and no smaller than the least graded size minus what the tabulation allows.
+    uniq, least = pts[1:], sizes[1:]
+    rng = np.random.default_rng(0)
+    off = rng.normal(0.0, 1.0, (400, 3))
+    off *= rng.uniform(0.0, 0.27, (400, 1)) / np.linalg.norm(off, axis=1, keepdims=True)
+    q = uniq[rng.integers(0, 3, 400)] + off
+    got = np.array([cb(2, 1, *p, 1e22) for p in q])
+    d = np.linalg.norm(q[:, None] - uniq[None], axis=-1)
+    nearest = least[np.argmin(d, axis=1)] + grading * d.min(axis=1)
+    assert np.all(got <= np.minimum(nearest, 0.3) * (1 + 1e-6))  # the table holds float32
+    assert np.all(got >= (least[None] + grading * d).min(axis=1) - grading * 0.25 * np.sqrt(3) / 2)
+
+
 def test_cli_mesh(y_tree, tmp_path, capsys):
     case = tmp_path / "case"
     case.mkdir()

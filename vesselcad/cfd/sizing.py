@@ -8,6 +8,7 @@ the solid was swept along (and from its flow extensions), and
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -164,8 +165,14 @@ class RadiusField:
         exact = self
         ref_tree, ref_size = None, None
         near_ref = np.zeros((1, 1, 1), dtype=bool)
+        near_pts: dict[int, list[tuple[float, float, float, float, float]]] = {}
         if refine is not None and len(refine[0]):
             ref_pts, ref_size = np.asarray(refine[0], float), np.asarray(refine[1], float)
+            # A point listed several times (one per close partner) needs the least of its sizes.
+            ref_pts, inv_ = np.unique(ref_pts, axis=0, return_inverse=True)
+            least_size = np.full(len(ref_pts), np.inf)
+            np.minimum.at(least_size, inv_.ravel(), ref_size)
+            ref_size = least_size
             ref_tree = cKDTree(ref_pts)
             # graded sizes tabulated on the grid; exact queries only right next to the points
             d, m = ref_tree.query(lo + idx * h, distance_upper_bound=(max_size - ref_size.min()) / grading)
@@ -176,6 +183,21 @@ class RadiusField:
             near_ref = np.zeros(tuple(shape), dtype=bool)
             close = ok & (d <= 2 * h)
             near_ref[idx[close, 0], idx[close, 1], idx[close, 2]] = True
+            # The points that can be nearest to any point of such a voxel: a point of the voxel
+            # lies within r = 0.87 h of its centre, so its nearest refine point lies within
+            # d + 2 r of the centre (d: the centre's nearest). Kept by distance from the centre,
+            # with the least distance each can have from a point of the voxel.
+            vox, dv = idx[close], d[close]
+            centres = lo + vox * h
+            r_vox = 0.5 * np.sqrt(3.0) * h
+            cands = ref_tree.query_ball_point(centres, dv + 2.0 * r_vox + 1e-9)
+            keys = ((vox[:, 0] * ny + vox[:, 1]) * nz + vox[:, 2]).tolist()
+            for key, c, cs in zip(keys, centres, cands, strict=True):
+                cs = np.asarray(cs, dtype=int)
+                dc = np.linalg.norm(ref_pts[cs] - c, axis=1)
+                o = np.argsort(dc, kind="stable")
+                near_pts[key] = [(*ref_pts[m].tolist(), float(ref_size[m]), max(float(e) - r_vox, 0.0) ** 2)
+                                 for m, e in zip(cs[o], dc[o], strict=True)]
 
         def callback(dim: int, tag: int, x: float, y: float, z: float, lc: float) -> float:
             i, j, k = int((x - x0) * inv + 0.5), int((y - y0) * inv + 0.5), int((z - z0) * inv + 0.5)
@@ -183,9 +205,21 @@ class RadiusField:
             s = float(grid[i, j, k]) if inside else float("nan")
             if s != s:  # NaN: not tabulated
                 s = min(max(edge_factor * float(exact(np.array([[x, y, z]]))[0]), min_size), max_size)
-            if ref_tree is not None and (not inside or near_ref[i, j, k]):
-                d, m = ref_tree.query((x, y, z))
-                s = min(s, float(ref_size[m] + grading * d))
+            if ref_tree is not None:
+                if not inside:
+                    d, m = ref_tree.query((x, y, z))
+                    s = min(s, float(ref_size[m] + grading * d))
+                elif near_ref[i, j, k]:
+                    # the nearest refine point, among the few that can be (no tree query: gmsh
+                    # asks here up to a million times where a fillet brings short edges)
+                    best, size = math.inf, 0.0
+                    for px, py, pz, ps, least in near_pts[(i * ny + j) * nz + k]:
+                        if least >= best:  # this one and all after it are farther
+                            break
+                        d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+                        if d2 < best:
+                            best, size = d2, ps
+                    s = min(s, size + grading * math.sqrt(best))
             f = overrides.get((dim, tag))
             if f is not None:
                 s = f(s)
