@@ -137,3 +137,25 @@ def test_alignment_stops_before_a_sample_already_paired():
     _, ia, ib, _ = cont._align(se, chb, used, np.arange(9), 0, 0, 1.0)
     assert 12 not in ib.tolist()
     assert ib.tolist() == [0, 1, 2, 3, 4, 10, 11]
+
+
+def test_without_a_writable_cache_folder_the_kernels_still_compile(monkeypatch):
+    # numba refuses cache=True at import where no folder is writable (read-only install and home):
+    # every folder it tries reports that it cannot be written.
+    from numba.core import caching
+
+    from vesselcad._dp import _compiled
+
+    def unwritable(self):
+        raise PermissionError(13, "Permission denied", self.get_cache_path())
+
+    monkeypatch.setattr(caching._CacheLocator, "ensure_cache_path", unwritable)
+    with pytest.raises(RuntimeError, match="no locator"):
+        caching.FunctionCache(lambda x: x)
+
+    def twice(x):
+        return 2.0 * x
+
+    fn = _compiled(twice)
+    assert fn(1.5) == 3.0
+    assert fn._cache.__class__.__name__ == "NullCache"

@@ -17,17 +17,33 @@ were the same, but for one tie.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+def _compiled(fn: Callable[..., Any]) -> Any:
+    """``fn`` compiled by numba, cached on disk where numba finds a writable folder.
+
+    numba looks beside this file, then in the user's cache folder (``NUMBA_CACHE_DIR``
+    chooses another). Where none is writable (a read-only install and home) the
+    functions are compiled afresh in each process instead of failing at import.
+    """
+    try:
+        return njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
+        return njit(nogil=True)(fn)
+
+
+@_compiled
 def _dist3(p0: float, p1: float, p2: float, q0: float, q1: float, q2: float, cap: float) -> float:
     d0, d1, d2 = p0 - q0, p1 - q1, p2 - q2
     return min(np.sqrt(d0 * d0 + d1 * d1 + d2 * d2), cap)
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def _scan_rows(D0: np.ndarray, h: np.ndarray, ptr: np.ndarray, rows: int, D: np.ndarray) -> None:
     """``D[t] = min(D0[t], D[t-1] + h[t])`` per row as running sums and minima; pointer 3 where moved."""
     L = D0.shape[1]
@@ -44,7 +60,7 @@ def _scan_rows(D0: np.ndarray, h: np.ndarray, ptr: np.ndarray, rows: int, D: np.
             D[k, t] = min(d, D0[k, t])
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def align(E: np.ndarray, X: np.ndarray, swapped: bool, map_a: np.ndarray, map_b: np.ndarray, idx: np.ndarray,
           n_len: np.ndarray, succ_m: np.ndarray, link_to: np.ndarray, link_from: np.ndarray,
           used_b: np.ndarray, a_seq: np.ndarray, cb: int, tb: int, tau: float, lw: float,
@@ -265,12 +281,12 @@ def align(E: np.ndarray, X: np.ndarray, swapped: bool, map_a: np.ndarray, map_b:
     return best, cells[:nc][::-1].copy()
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def _norm3(X: np.ndarray, i: int, j: int, k: int, m: int, cap: float) -> float:
     return _dist3(X[i, j, 0], X[i, j, 1], X[i, j, 2], X[k, m, 0], X[k, m, 1], X[k, m, 2], cap)
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def dtw(E: np.ndarray, X: np.ndarray, lw: float, cap: float) -> np.ndarray:
     """Accumulated cost of monotone alignments from (0, 0) (see :func:`vesselcad.matching._dtw`).
 
@@ -304,7 +320,7 @@ def dtw(E: np.ndarray, X: np.ndarray, lw: float, cap: float) -> np.ndarray:
     return D
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def backtrack(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Monotone path of an accumulated-cost matrix (see :func:`vesselcad.epipolar.backtrack`)."""
     na, nb = D.shape
@@ -343,7 +359,7 @@ def backtrack(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return path_i[: k + 1][::-1].copy(), path_j[: k + 1][::-1].copy()
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def pair_errors(oa: np.ndarray, da: np.ndarray, ob: np.ndarray, db: np.ndarray, Pa: np.ndarray,
                 Pb: np.ndarray, qa: np.ndarray, qb: np.ndarray, cap_px: float, far_mm: float
                 ) -> tuple[np.ndarray, np.ndarray]:
