@@ -90,6 +90,8 @@ def align(E: np.ndarray, X: np.ndarray, swapped: bool, map_a: np.ndarray, map_b:
                 blocked[c, t] = True
                 col[c, t] = map_b[0]
     last = n_len - 1
+    # Moves into each cell: 1 A-advance, 2 diagonal, 3 B-advance, 4 / 5 through a branch point of
+    # view B (diagonal / B-advance; the predecessor chain in jptr).
     ptr = np.zeros((n, C, L), np.int8)
     jptr = np.full((n, C, 2), -1, np.int64)
     D_prev = np.full((C, L), inf)
@@ -130,6 +132,8 @@ def align(E: np.ndarray, X: np.ndarray, swapped: bool, map_a: np.ndarray, map_b:
                 pos[c] = na
                 na += 1
         ra = map_a[a_seq[i]]
+        # A step of view A earns tau, a step of view B b_share * tau: a longer path in view B
+        # (another vessel beyond a branch point) is not preferred for its length alone.
         for k in range(na):
             ch = act[k]
             for t in range(L):
