@@ -220,3 +220,34 @@ def test_visible_share_bad_frames():
             visible_share(c, bad, 0)
     with pytest.raises(vc.ArgumentError, match="max_gap_px"):
         visible_share(c, 0, 0, max_gap_px=-1)
+
+
+def test_truth_comparison_measures_distances_to_the_curves_not_to_their_samples(case):
+    from types import SimpleNamespace
+
+    from vesselcad.phantom.compare import compare_with_truth
+    from vesselcad.splines import resample_by_arclength
+
+    i = 0
+    truth = case.run_a.trees[i]["branches"]
+    # A "reconstruction" of the first branches lying exactly on the true curves, sampled at a
+    # step that falls between the truth's own samples: its error is 0, not the half-step gap
+    # to the nearest sample (up to 0.25 mm with 0.5 mm samples).
+    chosen = [np.asarray(b["points"], float) for b in truth[:3]]
+    rec = SimpleNamespace(phase=SimpleNamespace(frame_a=i, frame_b=i), match=SimpleNamespace(root_pair=None),
+                          branches=[SimpleNamespace(ok=True, points_mm=resample_by_arclength(p, 0.37))
+                                    for p in chosen])
+    got = compare_with_truth(rec, case)
+    assert got["mean_mm"] < 1e-6 and got["max_mm"] < 1e-6
+    # Coverage: the share of the truth's length those branches make up (each other branch's
+    # first one or two millimetres lie within 1 mm of its parent, which covers it too: allow that).
+    length = [float(np.linalg.norm(np.diff(np.asarray(b["points"], float), axis=0), axis=1).sum())
+              for b in truth]
+    share = sum(length[:3]) / sum(length)
+    assert share - 0.005 <= got["coverage"] <= share + 2.5 * len(truth) / sum(length)
+    # Moved 3 mm off (beyond the 1 mm of the coverage), along one axis: every sample 3 mm or
+    # less from the true curve (nearer where that curve runs along the axis), none covering it.
+    moved = SimpleNamespace(**{**vars(rec), "branches": [
+        SimpleNamespace(ok=True, points_mm=b.points_mm + [0.0, 0.0, 3.0]) for b in rec.branches]})
+    off = compare_with_truth(moved, case)
+    assert off["max_mm"] <= 3.0 + 1e-9 and off["mean_mm"] > 1.0
