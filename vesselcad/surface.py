@@ -82,6 +82,41 @@ class QuadricSurface:
         flat = p.reshape(-1, 3)
         return _distance(flat, self.coefficients, self.centre, self.scale).reshape(p.shape[:-1])
 
+    def intersect_rays(self, origins: np.ndarray, directions: np.ndarray, near: np.ndarray) -> np.ndarray:
+        """Where rays meet the surface: for each ray the crossing nearest a given parameter.
+
+        Parameters
+        ----------
+        origins, directions : numpy.ndarray, shape (n, 3)
+            Rays ``origin + t * direction`` (mm; directions need not be unit vectors).
+        near : numpy.ndarray, shape (n,)
+            Of a ray's two crossings, the one whose ``t`` is nearer this is returned.
+
+        Returns
+        -------
+        numpy.ndarray, shape (n,)
+            ``t`` of that crossing; NaN where the ray misses the surface.
+        """
+        o = np.asarray(origins, dtype=float)
+        d = np.asarray(directions, dtype=float)
+        t0 = np.asarray(near, dtype=float)
+        if o.ndim != 2 or o.shape[1:] != (3,) or d.shape != o.shape or t0.shape != o.shape[:1]:
+            raise ArgumentError(f"origins, directions, near: expected shapes (n, 3), (n, 3), (n,), got "
+                                f"{o.shape}, {d.shape}, {t0.shape}")
+        a_, b_, c_, d_, e_, f_, g_, h_, i_ = self.coefficients
+        m = np.array([[a_, d_, e_], [d_, b_, f_], [e_, f_, c_]])
+        g = np.array([g_, h_, i_])
+        u0 = (o - self.centre) / self.scale
+        v = d / self.scale
+        # q(u0 + t v) = 1: a t^2 + b t + c = 0
+        a = np.einsum("ni,ij,nj->n", v, m, v)
+        b = 2.0 * (np.einsum("ni,ij,nj->n", u0, m, v) + v @ g)
+        c = np.einsum("ni,ij,nj->n", u0, m, u0) + 2.0 * (u0 @ g) - 1.0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            root = np.sqrt(b * b - 4.0 * a * c)
+            t1, t2 = (-b - root) / (2.0 * a), (-b + root) / (2.0 * a)
+        return np.where(np.abs(t1 - t0) <= np.abs(t2 - t0), t1, t2)
+
 
 def _design(u: np.ndarray) -> np.ndarray:
     x, y, z = u.T
