@@ -401,6 +401,53 @@ def test_branches_off_the_hearts_surface_are_left_out_but_not_near_the_ostium():
             reconstruct(ra, rb, labels=(la, lb), off_surface_sigmas=bad)
 
 
+def test_depth_along_the_epipolar_lines_comes_from_the_hearts_surface():
+    # A sphere of radius 60 mm around the isocentre as the heart's surface. A vessel on it that
+    # lies in one epipolar plane projects onto one epipolar line in both views: the views say
+    # nothing about its depth. Pushed 2 mm deeper along view A's rays (a wrong depth that
+    # reprojects the same in view A), it goes back onto the sphere, to the true points; a vessel
+    # crossing the epipolar planes keeps the depth the views gave it.
+    from vesselcad.pipeline import _depth_from_surface
+    from vesselcad.surface import QuadricSurface
+
+    scale, radius = 30.0, 60.0
+    c = (scale / radius) ** 2
+    sphere = QuadricSurface(coefficients=np.array([c, c, c, 0, 0, 0, 0, 0, 0], float),
+                            centre=np.zeros(3), scale=scale, sigma_mm=0.5, inliers=1.0)
+    sa, sb = VIEW_A.source, VIEW_B.source
+    x = radius * (sa + sb) / np.linalg.norm(sa + sb)  # the sphere's point facing both sources
+    n = np.cross(sb - sa, x - sa)
+    n /= np.linalg.norm(n)
+    d0 = float(np.dot(n, -sa))  # the epipolar plane through x: its circle on the sphere
+    centre, rc = -d0 * n, np.sqrt(radius**2 - d0**2)
+    e1 = (x - centre) / np.linalg.norm(x - centre)
+    e2 = np.cross(n, e1)
+    phi = np.linspace(-0.2, 0.2, 49)[:, None]
+    along = centre + rc * (np.cos(phi) * e1 + np.sin(phi) * e2)  # 24 mm in the epipolar plane
+    # a great circle through x whose tangent there is the plane's normal (across the planes)
+    across = radius * (np.cos(phi / 3) * (x / radius) + np.sin(phi / 3) * n)
+    assert np.allclose(np.linalg.norm(along, axis=1), radius) and abs(float(np.dot(along[1] - sa, n))) < 1e-9
+
+    def pushed(p, mm):
+        ray = (p - sa) / np.linalg.norm(p - sa, axis=1, keepdims=True)
+        return p + mm * ray
+
+    results = [_branch(0, along, pushed(along, 2.0)), _branch(1, across, pushed(across, 2.0))]
+    _depth_from_surface(results, (VIEW_A, VIEW_B), sphere)
+    assert np.abs(results[0].points_mm - along).max() < 1e-6
+    assert results[0].reprojection.max_px < 1e-6  # measured again, on the moved curve
+    assert "within 10 deg of the epipolar lines" in results[0].warnings[0]
+    assert np.array_equal(results[1].points_mm, pushed(across, 2.0)) and results[1].warnings == []
+    # a surface farther along the rays than SURFACE_DEPTH_MAX_MM (a 20 mm sphere here): untouched
+    small = QuadricSurface(coefficients=np.array([2.25, 2.25, 2.25, 0, 0, 0, 0, 0, 0], float),
+                           centre=np.zeros(3), scale=scale, sigma_mm=0.5, inliers=1.0)
+    results = [_branch(0, along, pushed(along, 2.0))]
+    _depth_from_surface(results, (VIEW_A, VIEW_B), small)
+    assert np.array_equal(results[0].points_mm, pushed(along, 2.0))
+    _depth_from_surface(results, (VIEW_A, VIEW_B), None)  # no surface: nothing to do
+    assert np.array_equal(results[0].points_mm, pushed(along, 2.0))
+
+
 def test_hooked_centreline_ends_are_cut_and_smooth_ones_kept():
     from vesselcad.pipeline import _without_hooks
 

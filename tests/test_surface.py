@@ -96,3 +96,21 @@ def test_a_flat_patch_is_no_heart():
     rng = np.random.default_rng(8)
     p = np.c_[rng.uniform(-40, 40, (300, 2)), rng.normal(0, 0.2, 300)]
     assert fit_quadric_surface(p) is None
+
+
+def test_rays_meet_a_sphere_where_geometry_says():
+    from vesselcad.surface import QuadricSurface
+
+    # sphere of radius 50 mm about (10, 0, 0): u = (x - c) / 25, q = (25/50)^2 |u|^2 = 1
+    s = QuadricSurface(coefficients=np.array([0.25, 0.25, 0.25, 0, 0, 0, 0, 0, 0], float),
+                       centre=np.array([10.0, 0.0, 0.0]), scale=25.0, sigma_mm=0.1, inliers=1.0)
+    origins = np.array([[10.0, 0.0, -200.0], [10.0, 30.0, -200.0], [10.0, 80.0, -200.0]])
+    dirs = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    t = s.intersect_rays(origins, dirs, near=np.array([0.0, 1000.0, 150.0]))
+    # first ray (direction of length 2): crossings at z = -50, +50, nearest t = 0 is z = -50: t = 75
+    assert t[0] == pytest.approx(75.0)
+    # second: |y| = 30, crossings at z = +-40; nearest t = 1000 is z = +40: t = 240
+    assert t[1] == pytest.approx(240.0)
+    assert np.isnan(t[2])  # |y| = 80 > 50: misses
+    with pytest.raises(vc.ArgumentError, match="origins, directions, near"):
+        s.intersect_rays(origins, dirs[:2], near=np.zeros(3))
