@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import time
 import warnings as _warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -456,7 +457,8 @@ def _without_hooks(pts: np.ndarray, reach_mm: float = HOOK_REACH_MM, max_turn_de
                         f"end): turns sharper than {max_turn_deg:g} degrees within {reach_mm:g} mm of an end")
 
 
-def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] | None = None) -> None:
+def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] | None = None,
+                  adjust: Callable[[], None] | None = None) -> None:
     """Parent of each branch: the branch whose end is its start landmark, else the nearest one.
 
     Candidate links (child start within 2 mm + 1.5 radii of another branch's
@@ -466,7 +468,9 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
     whose 3D start is then outside its parent's lumen (the two curves disagree in
     depth near the junction, where a vessel runs along the epipolar lines) has its
     start moved onto the parent, up to :data:`MAX_JOIN_GAP_MM`: the solid needs the
-    child to start inside its parent.
+    child to start inside its parent. ``adjust()``, if given, runs between choosing
+    the parents (on the curves as they were) and moving the starts (onto the curves
+    as it leaves them).
     """
     ok = [b for b in results if b.ok]
     if not ok:
@@ -510,6 +514,8 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
     accept(cand)
     if views is not None:
         accept(_joins_in_both_views(ok, views, set(links)))
+    if adjust is not None:
+        adjust()
     def depth(c: int) -> int:
         return 1 + depth(links[c][0]) if c in links else 0
 
@@ -1014,8 +1020,8 @@ def reconstruct(
     if bar is not None:
         bar.close()
     _drop_off_surface(results, match.surface, _ostium(match, phase), off_surface_sigmas)
-    _depth_from_surface(results, views, match.surface)
-    _link_parents(results, views)
+    # the depth from the surface moves points in view B: the parents are chosen before it
+    _link_parents(results, views, adjust=lambda: _depth_from_surface(results, views, match.surface))
     timings["centrelines_3d"] = time.perf_counter() - t
     for b in results:
         if not b.ok:
