@@ -446,6 +446,11 @@ def test_depth_along_the_epipolar_lines_comes_from_the_hearts_surface():
     assert np.array_equal(results[0].points_mm, pushed(along, 2.0))
     _depth_from_surface(results, (VIEW_A, VIEW_B), None)  # no surface: nothing to do
     assert np.array_equal(results[0].points_mm, pushed(along, 2.0))
+    # a surface the tree's points scatter about by more than SURFACE_DEPTH_MAX_SIGMA_MM: untouched
+    loose = QuadricSurface(coefficients=sphere.coefficients, centre=np.zeros(3), scale=scale, sigma_mm=2.0,
+                           inliers=1.0)
+    _depth_from_surface(results, (VIEW_A, VIEW_B), loose)
+    assert np.array_equal(results[0].points_mm, pushed(along, 2.0))
 
 
 def test_hooked_centreline_ends_are_cut_and_smooth_ones_kept():

@@ -75,10 +75,14 @@ OFF_SURFACE_OSTIUM_MM = 25.0
 #: them in either view) two views barely fix its depth, and the depth along view A's rays is
 #: taken from the heart's surface fitted by the matching instead: wholly below the first
 #: angle, blended linearly up to the second (``_depth_from_surface``; docs/results.md, issue 13,
-#: 2026-12-05: on 24 phantom cases 1.315 -> 1.266 mm, coverage 43.6 -> 44.5 %) ...
+#: 2026-12-05: on 24 phantom cases, true labels, 1.316 -> 1.269 mm, coverage 43.6 -> 44.4 %) ...
 SURFACE_DEPTH_DEG = (5.0, 10.0)
-#: ... where the surface lies at most this far (mm) along the ray from the two views' point.
+#: ... where the surface lies at most this far (mm) along the ray from the two views' point ...
 SURFACE_DEPTH_MAX_MM = 5.0
+#: ... and only from a surface the tree's own points follow to within this spread (mm; the
+#: fit's ``sigma_mm``, 0.2-1.4 mm on the phantom): within 5 deg of the lines the views' depth
+#: was 1.15 mm off (median), so a surface no closer than that to the vessels is no better.
+SURFACE_DEPTH_MAX_SIGMA_MM = 1.5
 #: ``reconstruct(tta=...)``: which frames are segmented with mirror test-time augmentation.
 TTA_MODES = ("chosen", "all", "none")
 #: Phase matching's weight of the vessels' epipolar consistency (mm per unit, ``match_phase``'s
@@ -582,9 +586,10 @@ def _depth_from_surface(results: list[BranchResult], views: tuple[CArmView, CArm
     ``SURFACE_DEPTH_DEG[0]`` of the epipolar lines in either view, 0 from
     ``SURFACE_DEPTH_DEG[1]`` on; the moves are smoothed along the branch (Gaussian,
     two samples) so the curve stays smooth. A branch so changed says so in its warnings, and
-    its reprojection error is measured again.
+    its reprojection error is measured again. Nothing moves when the tree's points scatter
+    about the surface by more than :data:`SURFACE_DEPTH_MAX_SIGMA_MM`.
     """
-    if surface is None:
+    if surface is None or not surface.sigma_mm <= SURFACE_DEPTH_MAX_SIGMA_MM:
         return
     va, vb = views
     lo, hi = SURFACE_DEPTH_DEG
