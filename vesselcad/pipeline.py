@@ -24,6 +24,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .centreline2d import CentrelineGraph, centreline_graph
+from .epipolar import EpipolarPair
 from .errors import ArgumentError, VesselcadError, VesselcadWarning
 from .geometry import CArmView
 from .io import XARun, load_run
@@ -570,11 +571,8 @@ def _drop_off_surface(results: list[BranchResult], surface: Any, ostium: np.ndar
 def _epipolar_angle_deg(points_mm: np.ndarray, view: CArmView, other: CArmView) -> np.ndarray:
     """Angle (degrees) between a 3D curve's projected tangent and the epipolar line, per sample."""
     p = view.project(points_mm)
-    t = np.gradient(p, axis=0)
-    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    e = p - view.project(other.source[None])[0]
-    e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-12)
-    return np.degrees(np.arccos(np.clip(np.abs(np.sum(t * e, axis=1)), 0.0, 1.0)))
+    sine = EpipolarPair(view, other).conditioning(view, p, np.gradient(p, axis=0))
+    return np.degrees(np.arcsin(np.clip(sine, 0.0, 1.0)))
 
 
 def _depth_from_surface(results: list[BranchResult], views: tuple[CArmView, CArmView],
