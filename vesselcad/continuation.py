@@ -261,7 +261,7 @@ def sample_errors(va: CArmView, vb: CArmView, cha: Chains, chb: Chains, free_a: 
 
 def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarray,
                    used_b: np.ndarray, anchors: list[tuple[int, int, int, int]], tol: float,
-                   mm_a: float, mm_b: float, cost_rate: float = 0.0
+                   mm_a: float, mm_b: float, cost_rate: float = 0.0, radii: bool = True
                    ) -> tuple[list[Continuation], list[tuple[int, int, int, int]]]:
     """Grow pairs from ``anchors`` (chain and position in view A, in view B) as far as the views agree.
 
@@ -272,6 +272,8 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
     become anchors in turn (the other branches there may continue from it);
     they are returned with the new pairs. ``cost_rate`` is the rate of the
     gains' error factor (``matching._cost_factor``; 0: the linear ramp only).
+    With ``radii=False`` the two views' radii are not compared (a stretch of
+    two vessels overlapping in one view is wider there than either vessel).
     """
     tau = TAU * tol
     out: list[Continuation] = []
@@ -301,7 +303,7 @@ def continue_pairs(se: SampleErrors, cha: Chains, chb: Chains, used_a: np.ndarra
                     continue
                 ra = float(np.median(cha.radius[ia])) * mm_a
                 rb = float(np.median(chb.radius[ib])) * mm_b
-                agree = _radius_factor(ra, rb)
+                agree = _radius_factor(ra, rb) if radii else 1.0
                 if agree < MIN_RADIUS_AGREEMENT:
                     continue
                 fs = _foreshortening_factor(se.X[se.map_a[ia], se.map_b[ib]], la, lb, mm_a, mm_b)

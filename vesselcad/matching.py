@@ -91,6 +91,16 @@ SURFACE_SIGMA_MIN_MM = 2.0
 SURFACE_WIDTH = 1.5
 #: Rounds of seeding unpaired stretches once the continuation finds nothing more (0: none).
 SEED_ROUNDS = 3
+#: A paired sample whose radius (mm at the isocentre) is at least this many times its partner's
+#: may be paired a second time: two vessels overlapping in that view (None: never).
+OVERLAP_RATIO: float | None = 1.2
+#: Shortest second pairing of a stretch (px in both views).
+OVERLAP_MIN_PX = 20.0
+#: The two vessels of a stretch paired twice are put on the side that agrees better with the
+#: other view when it does by this much (mean px over the stretch, both pairs summed).
+OVERLAP_SIDE_PX = 0.1
+#: Whether to move the two pieces of a stretch paired twice off its middle.
+OVERLAP_CENTRE = True
 
 
 @dataclass
@@ -135,7 +145,9 @@ class BranchPair:
         Landmark indices (view A, view B) at each end; None where the end is
         a point inside a branch (the other view's branch point).
     points_a_px, points_b_px : numpy.ndarray, shape (n, 2)
-        The paired pieces, in pair order.
+        The paired pieces, in pair order. Where a stretch of one view is
+        paired twice (two vessels overlapping there), its two pieces lie off
+        the skeleton, one on each side (docs/centreline2d.md, "Overlaps").
     radius_a_px, radius_b_px : numpy.ndarray, shape (n,)
         Radius profiles along those pieces.
     radius_mm : float
@@ -145,9 +157,10 @@ class BranchPair:
     found_by : str
         How the pair was found: ``'landmarks'`` (both ends at agreeing
         landmarks), ``'one end'`` (from one agreeing landmark, as far as the
-        views agree), ``'continuation'`` (grown past another pair's end) or
+        views agree), ``'continuation'`` (grown past another pair's end),
         ``'seed'`` (grown from a seed on the heart's surface, no landmark or
-        pair behind it).
+        pair behind it) or ``'overlap'`` (a second partner of a stretch that
+        is two vessels overlapping in one view).
     """
 
     a: int
@@ -406,7 +419,10 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     continuation finds nothing more, unpaired stretches whose middle sample
     has one partner in the other view that agrees and lies on that surface
     are seeded there and grown both ways (``SEED_ROUNDS`` rounds;
-    docs/centreline2d.md, "Seeds").
+    docs/centreline2d.md, "Seeds"). Last, a paired stretch at least
+    ``OVERLAP_RATIO`` times as wide as its partner (two vessels overlapping
+    in that view) may be paired a second time, and its two pieces are moved
+    apart to the two vessels' sides (docs/centreline2d.md, "Overlaps").
 
     Parameters
     ----------
@@ -561,6 +577,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
         pairs.extend(more)
         used_a = used_a | {p.a for p in more}
         used_b = used_b | {p.b for p in more}
+    if OVERLAP_CENTRE:
+        _centre_overlaps(pairs, ga, gb, view_a, view_b, mm_a, mm_b)
     order = {id(p): k for k, p in enumerate(pairs)}
     pairs.sort(key=lambda p: (depth_a.get(p.start[0], 0) if p.start[0] is not None else 1e9, order[id(p)]))
 
@@ -883,12 +901,7 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
     free_a, free_b = ~used_a, ~used_b
     for ca, ta, cb, tb in anchors:
         free_a[cha.idx[ca, ta]] = free_b[chb.idx[cb, tb]] = True
-    se = cont.sample_errors(va, vb, cha, chb, free_a, free_b)
-    if surface is not None:
-        # Leaving the heart's surface by more than SURFACE_WIDTH sigma costs like reconstruction error.
-        width = SURFACE_WIDTH * max(surface.sigma_mm, SURFACE_SIGMA_MIN_MM)
-        d = np.nan_to_num(surface.distance(se.X), nan=np.inf)
-        se.E = np.minimum(se.E + OPEN_TAU * tol * np.maximum(d / width - 1.0, 0.0) ** 2, CAP_PX)
+    se = _surface_penalty(cont.sample_errors(va, vb, cha, chb, free_a, free_b), surface, tol)
     # Grow from view A's side, then from view B's (a vessel that view A shows as one branch but
     # view B through a branch point, or the other way round), until neither finds more.
     found: list[cont.Continuation] = []
@@ -921,8 +934,14 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
         seeded += [True] * (len(got) + len(got_b))
         if not got and not got_b:
             break
+    how = ["seed" if x else "continuation" for x in seeded]
+    if OVERLAP_RATIO is not None:
+        more = _overlaps(va, vb, cha, chb, pairs, found, used_a, used_b, anchors, tol, mm_a, mm_b,
+                         cost_rate, surface)
+        found += more
+        how += ["overlap"] * len(more)
     out: list[BranchPair] = []
-    for c, from_seed in zip(found, seeded, strict=True):
+    for c, found_by in zip(found, how, strict=True):
         ka, kb = cha.branch[c.ia], chb.branch[c.ib]
         brk = np.flatnonzero((np.diff(ka) != 0) | (np.diff(kb) != 0)) + 1
         for lo, hi in zip(np.r_[0, brk], np.r_[brk, len(ka)], strict=True):
@@ -941,9 +960,175 @@ def _continuations(va: CArmView, vb: CArmView, ga: CentrelineGraph, gb: Centreli
                 points_a_px=pts_a, points_b_px=pts_b, radius_a_px=r_a, radius_b_px=r_b,
                 radius_mm=float(np.median(np.concatenate([r_a * mm_a, r_b * mm_b]))),
                 error_px=err, error_mm=err * 0.5 * (mm_a + mm_b),
-                found_by="seed" if from_seed else "continuation")
+                found_by=found_by)
             out.append(_flip(q) if q.reversed_a else q)
     return out
+
+
+def _surface_penalty(se: Any, surface: QuadricSurface | None, tol: float) -> Any:
+    """Sample errors with the heart's surface's penalty: leaving it by more than ``SURFACE_WIDTH``
+    sigma costs like reconstruction error (capped at ``CAP_PX``)."""
+    if surface is not None:
+        width = SURFACE_WIDTH * max(surface.sigma_mm, SURFACE_SIGMA_MIN_MM)
+        d = np.nan_to_num(surface.distance(se.X), nan=np.inf)
+        se.E = np.minimum(se.E + OPEN_TAU * tol * np.maximum(d / width - 1.0, 0.0) ** 2, CAP_PX)
+    return se
+
+
+def _partner_radius(cha: Any, chb: Any, pairs: list[BranchPair], found: list, mm_a: float, mm_b: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Radius (mm at the isocentre) of each paired sample's partner in the other view (NaN: unpaired)."""
+    ra = np.full(len(cha.pts), np.nan)
+    rb = np.full(len(chb.pts), np.nan)
+    for p in pairs:
+        for ch, out, k, (lo, hi), rev, other, mm in (
+                (cha, ra, p.a, p.a_range, p.reversed_a, p.radius_b_px, mm_b),
+                (chb, rb, p.b, p.b_range, p.reversed_b, p.radius_a_px, mm_a)):
+            on = np.flatnonzero((ch.branch == k) & (ch.arc >= lo - 0.5 * STEP_PX)
+                                & (ch.arc <= hi + 0.5 * STEP_PX))
+            t = np.clip((ch.arc[on] - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+            if rev:
+                t = 1.0 - t
+            out[on] = np.interp(t, np.linspace(0.0, 1.0, len(other)), other) * mm
+    for c in found:
+        ra[c.ia] = chb.radius[c.ib] * mm_b
+        rb[c.ib] = cha.radius[c.ia] * mm_a
+    return ra, rb
+
+
+def _overlaps(va: CArmView, vb: CArmView, cha: Any, chb: Any, pairs: list[BranchPair], found: list,
+              used_a: np.ndarray, used_b: np.ndarray, anchors: list, tol: float, mm_a: float, mm_b: float,
+              cost_rate: float, surface: QuadricSurface | None) -> list:
+    """Second partners for paired stretches that are two vessels overlapping in one view."""
+    from . import continuation as cont
+
+    part_a, part_b = _partner_radius(cha, chb, pairs, found, mm_a, mm_b)
+    with np.errstate(invalid="ignore"):
+        wide_a = used_a & (cha.radius * mm_a >= OVERLAP_RATIO * part_a)
+        wide_b = used_b & (chb.radius * mm_b >= OVERLAP_RATIO * part_b)
+    out: list = []
+    swap = lambda anc: [(cb, tb, ca, ta) for ca, ta, cb, tb in anc]  # noqa: E731
+    for side in ("a", "b"):
+        wide = wide_a if side == "a" else wide_b
+        if not wide.any():
+            continue
+        # Only the wide samples of this view are open, only the unpaired ones of the other.
+        if side == "a":
+            ua, ub = ~wide_a, used_b.copy()
+        else:
+            ua, ub = used_a.copy(), ~wide_b
+        free_a, free_b = ~ua, ~ub
+        for ca, ta, cb, tb in anchors:
+            free_a[cha.idx[ca, ta]] = free_b[chb.idx[cb, tb]] = True
+        se = _surface_penalty(cont.sample_errors(va, vb, cha, chb, free_a, free_b), surface, tol)
+        got, _ = cont.continue_pairs(se, cha, chb, ua, ub, list(anchors), tol, mm_a, mm_b, cost_rate,
+                                     radii=False)
+        got_b, _ = cont.continue_pairs(se.T, chb, cha, ub, ua, swap(anchors), tol, mm_b, mm_a, cost_rate,
+                                       radii=False)
+        # Seeds too (with or without the heart's surface: only the wide stretches are open, and a
+        # seed needs one partner there that agrees clearly better than any other).
+        sd = cont.seeds(se, cha, chb, ua, ub) + swap(cont.seeds(se.T, chb, cha, ub, ua))
+        got_s, new = cont.continue_pairs(se, cha, chb, ua, ub, sd, tol, mm_a, mm_b, cost_rate, radii=False)
+        got_t, _ = cont.continue_pairs(se.T, chb, cha, ub, ua, swap(sd + new), tol, mm_b, mm_a, cost_rate,
+                                       radii=False)
+        out += got + got_s + [cont.Continuation(c.gain, c.cost, c.ib, c.ia, c.err, c.anchor)
+                              for c in got_b + got_t]
+    # Short pieces are left out: a few samples of a blob agree with many vessels of the other view,
+    # and a stub paired there would become the parent of a subtree in 3D.
+    length = lambda s: STEP_PX * (len(np.unique(s)) - 1)  # noqa: E731
+    return [c for c in out if min(length(c.ia), length(c.ib)) >= OVERLAP_MIN_PX]
+
+
+def _pair_arcs(p: BranchPair, view: str) -> np.ndarray:
+    """Own-order arc length (px) of each of a pair's points in one view."""
+    lo, hi = p.a_range if view == "a" else p.b_range
+    rev = p.reversed_a if view == "a" else p.reversed_b
+    t = np.linspace(0.0, 1.0, len(p.points_a_px))
+    return hi - (hi - lo) * t if rev else lo + (hi - lo) * t
+
+
+def _centre_overlaps(pairs: list[BranchPair], ga: CentrelineGraph, gb: CentrelineGraph, va: CArmView,
+                     vb: CArmView, mm_a: float, mm_b: float) -> None:
+    """Move the two pieces of a stretch paired twice (two vessels overlapping in one view) apart.
+
+    The stretch's skeleton runs down the middle of the two overlapping
+    vessels. Each vessel's centre lies its partner's radius (converted to
+    this view) in from the edge of the stretch, one on each side; which on
+    which side is what agrees better with the other view (left in the middle
+    where the two choices agree about as well: the vessel runs across the
+    epipolar lines there). The points of ``pairs`` are moved in place.
+    """
+    # Every stretch is moved from where the skeleton put it (a piece may share two stretches).
+    orig = {id(p): (p.points_a_px.copy(), p.points_b_px.copy()) for p in pairs}
+    for view, g, mm_x, mm_o in (("a", ga, mm_a, mm_b), ("b", gb, mm_b, mm_a)):
+        on: dict[int, list[int]] = {}
+        for k, p in enumerate(pairs):
+            on.setdefault(p.a if view == "a" else p.b, []).append(k)
+        for br, ks in on.items():
+            if len(ks) < 2:
+                continue
+            b = g.branches[br]
+            arc = arc_length(b.points_px)
+            tan = np.gradient(b.points_px, arc, axis=0) if len(arc) > 1 else np.zeros_like(b.points_px)
+            for i, k1 in enumerate(ks):
+                for k2 in ks[i + 1:]:
+                    _centre_two(pairs[k1], pairs[k2], view, b, arc, tan, mm_x, mm_o, va, vb, orig)
+
+
+def _centre_two(p: BranchPair, q: BranchPair, view: str, b: Any, arc: np.ndarray, tan: np.ndarray,
+                mm_x: float, mm_o: float, va: CArmView, vb: CArmView,
+                orig: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
+    """:func:`_centre_overlaps` for two pairs that share a stretch of branch ``b`` in ``view``."""
+    sp, sq = _pair_arcs(p, view), _pair_arcs(q, view)
+    lo = max(sp.min(), sq.min())
+    hi = min(sp.max(), sq.max())
+    if hi - lo < 2.0 * STEP_PX:
+        return
+    idx = np.flatnonzero((sp >= lo) & (sp <= hi))
+    if len(idx) < 2:
+        return
+    s = sp[idx]
+    order = np.argsort(sq)
+    pts = "points_a_px" if view == "a" else "points_b_px"
+    x0p, o0p = orig[id(p)] if view == "a" else orig[id(p)][::-1]
+    x0q, o0q = orig[id(q)] if view == "a" else orig[id(q)][::-1]
+    rad_o = "radius_b_px" if view == "a" else "radius_a_px"
+    R = np.interp(s, arc, b.radius_px)
+    t = np.stack([np.interp(s, arc, tan[:, 0]), np.interp(s, arc, tan[:, 1])], axis=1)
+    nrm = np.stack([-t[:, 1], t[:, 0]], axis=1) / np.maximum(np.linalg.norm(t, axis=1), 1e-9)[:, None]
+    rp = getattr(p, rad_o)[idx] * mm_o / mm_x
+    rq = np.interp(s, sq[order], getattr(q, rad_o)[order]) * mm_o / mm_x
+    off_p, off_q = np.clip(R - rp, 0.0, R), np.clip(R - rq, 0.0, R)
+    xp, op = x0p[idx], o0p[idx]
+    xq = np.stack([np.interp(s, sq[order], x0q[order, c]) for c in (0, 1)], axis=1)
+    oq = np.stack([np.interp(s, sq[order], o0q[order, c]) for c in (0, 1)], axis=1)
+
+    def err(x: np.ndarray, o: np.ndarray) -> np.ndarray:
+        if view == "a":
+            return reconstruction_error(va, x, vb, o).error_px
+        return reconstruction_error(va, o, vb, x).error_px
+
+    # Each piece's radius there is its own vessel's (the other view's), not the stretch's.
+    rad_x = "radius_a_px" if view == "a" else "radius_b_px"
+    jq = np.flatnonzero((sq >= lo) & (sq <= hi))
+    so = np.argsort(s)
+    getattr(p, rad_x)[idx] = np.minimum(getattr(p, rad_x)[idx], rp)
+    getattr(q, rad_x)[jq] = np.minimum(getattr(q, rad_x)[jq], getattr(q, rad_o)[jq] * mm_o / mm_x)
+    sign = np.array([1.0, -1.0])
+    e = [float(np.mean(err(xp + sg * off_p[:, None] * nrm, op) + err(xq - sg * off_q[:, None] * nrm, oq)))
+         for sg in sign]
+    best = int(np.argmin(e))
+    if not e[best] < e[1 - best] - OVERLAP_SIDE_PX:
+        return
+    sg = sign[best]
+    new_p = getattr(p, pts).copy()
+    new_p[idx] = xp + sg * off_p[:, None] * nrm
+    setattr(p, pts, new_p)
+    off_jq = np.interp(sq[jq], s[so], off_q[so])
+    nq = np.stack([np.interp(sq[jq], s[so], nrm[so, c]) for c in (0, 1)], axis=1)
+    new_q = getattr(q, pts).copy()
+    new_q[jq] = x0q[jq] - sg * off_jq[:, None] * nq
+    setattr(q, pts, new_q)
 
 
 def _along(branch: Any, ends: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
