@@ -1079,6 +1079,8 @@ def _centre_two(p: BranchPair, q: BranchPair, view: str, b: Any, arc: np.ndarray
                 mm_x: float, mm_o: float, va: CArmView, vb: CArmView,
                 orig: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
     """:func:`_centre_overlaps` for two pairs that share a stretch of branch ``b`` in ``view``."""
+    if any(len(x.points_a_px) != len(x.points_b_px) for x in (p, q)):
+        return  # point i of one view is point i of the other in every pair the matching builds
     sp, sq = _pair_arcs(p, view), _pair_arcs(q, view)
     lo = max(sp.min(), sq.min())
     hi = min(sp.max(), sq.max())
