@@ -574,6 +574,68 @@ def test_a_parent_that_ends_where_its_children_start_has_no_outlet_there():
         np.testing.assert_allclose(e.Sphere().Location().Coord(), [0, 0, 20], atol=1e-3)
 
 
+def test_a_neck_is_the_law_less_a_smooth_dip_that_ends_where_it_says():
+    from scipy import interpolate
+
+    from vesselcad.tree import _neck
+
+    x = np.linspace(0.0, 10.0, 40)
+    knots = np.r_[[0.0] * 4, [4.0, 8.0], [10.0] * 4]
+    law = interpolate.make_lsq_spline(x, 1.0 + 0.05 * x + 0.01 * x**2, knots)
+    necked = _neck(law, 1.2, 0.5, 0.6)  # down to 0.5 x 1.2 mm at the start, back within 0.6 mm
+    assert float(necked(0.0)) == pytest.approx(0.6, abs=1e-12)
+    s = np.linspace(0.0, 10.0, 4001)
+    after = s >= 0.6
+    np.testing.assert_allclose(necked(s[after]), law(s[after]), atol=1e-12)
+    # the dip is D (1 - u)^3: D = 1.0 - 0.6, u = s / 0.6
+    u = s[~after] / 0.6
+    np.testing.assert_allclose(necked(s[~after]), law(s[~after]) - 0.4 * (1 - u) ** 3, atol=1e-12)
+    for nu in (1, 2):  # C2 where it ends
+        assert float(necked.derivative(nu)(0.6)) == pytest.approx(float(law.derivative(nu)(0.6)), abs=1e-9)
+    assert _neck(law, 1.2, 0.9, 0.6) is law  # the start is narrower already: nothing to do
+
+
+def test_children_that_start_at_their_parents_end_are_necked_inside_it_and_the_surface_does_not_change(
+        monkeypatch):
+    # The Y of the test above: a parent of radius 2 ending where two children of radius 1.4 start.
+    # Each child's lead-in starts on the parent's axis one parent radius back inside it; its
+    # radius is necked down to END_NECK_SHARE of the parent's there (a tenth of a radius from the
+    # parent's wall, OCCT's union can run for minutes) and is its own 0.5 parent radii on, still
+    # inside the parent: the union's volume is that of the same tree without necks.
+    import vesselcad.tree as vt
+
+    branches = [
+        {"id": 0, "parent": None, "points": _line([0, 0, 0], [0, 0, 1], 20).tolist(), "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "points": _line([0, 0, 20], LEFT, 25).tolist(), "radius": [1.4] * 30},
+        {"id": 2, "parent": 0, "points": _line([0, 0, 20], RIGHT, 25).tolist(), "radius": [1.4] * 30},
+    ]
+    solid = _tree(branches).solid(merge=False)
+    specs = {s["id"]: s for s in solid.specs}
+    pipes = {p.branch_id: p for p in solid.pipes}
+    assert specs[0]["neck_mm"] == 0.0
+    for bid in (1, 2):
+        spec = specs[bid]
+        assert spec["neck_mm"] == pytest.approx(vt.END_NECK_RADII * 2.0)
+        a = float(spec["spine"].t[spec["spine"].k])
+        assert float(np.ravel(spec["radius"](a))[0]) == pytest.approx(vt.END_NECK_SHARE * 2.0, abs=1e-9)
+        # the neck lies inside the parent: its axis within the parent's cylinder, below its end
+        s = np.linspace(a, a + spec["neck_mm"], 20)
+        axis = spec["spine"](s)
+        assert np.all(axis[:, 2] < 20.0) and np.all(
+            np.hypot(axis[:, 0], axis[:, 1]) + np.ravel(spec["radius"](s)) < 2.0)
+        # the pipe reports the vessel's own start radius and probes clear of the parent
+        assert pipes[bid].start_radius == pytest.approx(1.4, abs=0.01)
+        assert np.linalg.norm(pipes[bid].probes[0] - [0, 0, 20]) > 2.0
+    check = solid.check()
+    assert check["valid"] and check["watertight"] and check["solids"] == 1
+    monkeypatch.setattr(vt, "END_NECK_SHARE", None)
+    plain = _tree(branches).solid(merge=False)
+    assert all(s["neck_mm"] == 0.0 for s in plain.specs)
+    # the same to the walls' fit (each within 2 um of its exact tube, the two swept through
+    # different stations); a neck that showed would take ~1.5 mm3 (pi (1.4^2 - 1.0^2) x 0.5 mm)
+    assert solid.volume == pytest.approx(plain.volume, abs=0.02)
+
+
 def test_a_domed_pipe_is_its_tube_plus_a_hemisphere():
     # A straight pipe (r = 1.5, 10 mm) closed at its end with a dome: pi r^2 L + 2/3 pi r^3,
     # one valid solid whose end face is the sphere of radius r around the end point, and a
@@ -1168,10 +1230,12 @@ def test_a_slow_union_adding_back_a_lost_branch_gives_way_to_the_branch_by_branc
     # first back took OCCT 110 s; with a 5 s limit on single-branch unions the tree is fused
     # branch by branch instead (each of those unions takes under a second), every branch kept.
     import vesselcad.kernel.solid as ks
+    import vesselcad.tree as vt
 
     if not isinstance(ks._WORKER, ks.FuseWorker) and ks._WORKER is not None:
         pytest.skip("no helper process on this machine")
     monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 5.0)
+    monkeypatch.setattr(vt, "END_NECK_SHARE", None)  # the junctions as swept before necks
     tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "fuse_slow_lca_2006.json")
     solid = tree.solid()
     notes = [w for w in solid.warnings if "fused the branches one by one in tree order" in w]
@@ -1190,10 +1254,12 @@ def test_a_junction_occt_cannot_finish_is_tried_again_with_a_narrower_start(monk
     # the daughter's union run out of time, the daughter is tried again with its start narrowed to
     # RETRY_CHILD_RADIUS_SHARE of the root's radius, and the whole tree goes into the solid.
     import vesselcad.kernel.solid as ks
+    import vesselcad.tree as vt
     from vesselcad.tree import RETRY_CHILD_RADIUS_SHARE
 
     if not isinstance(ks._WORKER, ks.FuseWorker) and ks._WORKER is not None:
         pytest.skip("no helper process on this machine")
+    monkeypatch.setattr(vt, "END_NECK_SHARE", None)  # the junction as swept before necks
     monkeypatch.setattr(ks, "FUSE_TIMEOUT_S", 3.0)
     monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 4.0)
     tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "fuse_hang_rca_2119.json")
@@ -1217,6 +1283,26 @@ def test_a_junction_occt_cannot_finish_is_tried_again_with_a_narrower_start(monk
     assert check["valid"] and check["watertight"] and check["solids"] == 1
     for pipe in solid.pipes:
         assert ks._inside(solid.shape, pipe.trusted_probes()).all()
+
+
+@pytest.mark.parametrize("name, n_pipes", [("fuse_hang_rca_2119.json", 4), ("fuse_slow_lca_2006.json", 18)])
+def test_necked_starts_let_the_general_fuse_unite_trees_it_could_not(monkeypatch, name, n_pipes):
+    # The two trees of the tests above, with necks (END_NECK_SHARE): OCCT's general fuse unites
+    # each whole, within a limit far below what their unions took without (minutes; 110 s for
+    # adding back a branch the general fuse had lost), nothing retried or left out.
+    import vesselcad.kernel.solid as ks
+
+    if not isinstance(ks._WORKER, ks.FuseWorker) and ks._WORKER is not None:
+        pytest.skip("no helper process on this machine")
+    monkeypatch.setattr(ks, "FUSE_TIMEOUT_S", 30.0)
+    monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 5.0)
+    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / name)
+    solid = tree.solid()
+    assert sum(s["neck_mm"] > 0 for s in solid.specs) >= 1
+    assert not solid.failed and len(solid.branch_ids) == n_pipes
+    assert solid.union_warnings == []
+    check = solid.check()
+    assert check["valid"] and check["watertight"] and check["solids"] == 1
 
 
 def test_a_lost_branch_whose_adding_back_overruns_is_reported_as_such(monkeypatch):

@@ -61,6 +61,15 @@ CHILD_RADIUS_SHARE = 0.9
 #: tenth of a millimetre of the parent's for millimetres, which can keep OCCT's surface
 #: intersection busy for minutes (docs/solids.md, "Junctions OCCT cannot finish").
 RETRY_CHILD_RADIUS_SHARE = 0.7
+#: A child that starts at its parent's end starts on the parent's axis one parent radius
+#: back inside it, along it: its first circle and the parent's wall run side by side,
+#: a tenth of a radius apart where the start is clamped to CHILD_RADIUS_SHARE, and OCCT's
+#: union of the two can then run for minutes. Its radius law is therefore necked down to
+#: this share of the parent's radius at its very start, back to the law within
+#: END_NECK_RADII parent radii (all of it inside the parent, so the solid's surface does
+#: not change; docs/solids.md, "Junctions OCCT cannot finish"). None: no neck.
+END_NECK_SHARE: float | None = 0.5
+END_NECK_RADII = 0.5
 #: A child shorter than this many times its radius and its parent's together at its start
 #: is a stub: in the solid it starts the child that continues it, or, childless, is left
 #: out (:meth:`VesselTree.pipe_specs`).
@@ -754,7 +763,8 @@ class VesselTree:
         Rebuilds (and merges) if needed, clamps the radius against curvature and
         at child starts, and moves a child's start onto its parent's centreline
         when it lies off it. Returns dicts ``{'id', 'name', 'parent', 'spine',
-        'radius', 'cuts', 'end', 'warnings', 'stubs', 'r_parent'}``; ``cuts`` are the spine parameters (mm)
+        'radius', 'cuts', 'end', 'warnings', 'stubs', 'r_parent', 'neck_mm', 'radius_unnecked'}``;
+        ``cuts`` are the spine parameters (mm)
         where a pipe that would overlap itself is cut into pieces (empty for
         almost every branch); ``end`` is ``'dome'`` for a vessel whose children
         start at its end (closed with a hemisphere there), else ``'flat'``;
@@ -764,7 +774,12 @@ class VesselTree:
         domed end) becomes the start of the child that continues it, or,
         without children, is left out: ``stubs`` maps such ids of this
         branch's children to the reason; ``r_parent`` is the parent's radius
-        (mm) where a child starts (None for a root).
+        (mm) where a child starts (None for a root); ``neck_mm`` is the length
+        of a child's start that is necked down inside its parent (a child
+        starting at its parent's end, ``END_NECK_SHARE``; else 0): the radius law
+        there is not the vessel's, and the surface does not show it;
+        ``radius_unnecked`` is the law before that (the same object where
+        there is no neck).
         """
         tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
         if merge:
@@ -778,7 +793,7 @@ class VesselTree:
             spine, warns = _smooth_kinks(b.spline, b.radius_law)
             b = replace(b, spline=spine)
             law, warns = b.radius_law, list(b.warnings) + warns
-            r_parent = None
+            r_parent, at_end = None, False
             if b.parent is not None:
                 # attach to the parent's pipe as swept (its radius clamped, its start moved)
                 spine, law, w, r_parent, at_end = _start_inside(b, swept[b.parent])
@@ -790,12 +805,18 @@ class VesselTree:
                                                        "with a hemisphere, not a disc")
             law, w = _clamp_radius(spine, law, r_parent)
             warns += w
+            neck, unnecked = 0.0, law
+            if at_end and END_NECK_SHARE is not None:
+                necked = _neck(law, r_parent, END_NECK_SHARE, END_NECK_RADII * r_parent)
+                if necked is not law:
+                    law, neck = necked, END_NECK_RADII * r_parent
             w, cuts = _self_approach(spine, law)
             warns += w
             swept[bid] = replace(b, spline=spine, radius_law=law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
                           "radius": law, "cuts": cuts, "end": "flat", "warnings": warns,
-                          "stubs": stubs.get(b.id, {}), "r_parent": r_parent})
+                          "stubs": stubs.get(b.id, {}), "r_parent": r_parent, "neck_mm": neck,
+                          "radius_unnecked": unnecked})
             by_id[b.id] = specs[-1]
         return specs
 
@@ -835,7 +856,8 @@ class VesselTree:
         if len(self.branches) > 1:
             start_fuse_worker()  # the booleans' helper process starts while the pipes are built
         specs = self.pipe_specs(tol_mm, merge, max_merge_angle_deg)
-        seams = seam_angles(specs)
+        # the seams are placed on the vessels as they show: a neck hidden inside a parent moves none
+        seams = seam_angles([{**s, "radius": s["radius_unnecked"]} for s in specs])
         for s in specs:
             s["seam_deg"] = seams[s["id"]]  # wall seams clear of the other vessels' walls
         t1 = time.perf_counter()
@@ -872,7 +894,7 @@ class VesselTree:
             try:
                 pipes.append(branch_pipe(s["id"], s["name"], s["parent"], s["spine"], s["radius"],
                                          station_step_mm, s.get("cuts", ()), s.get("end", "flat"),
-                                         s.get("seam_deg", 0.0)))
+                                         s.get("seam_deg", 0.0), s.get("neck_mm", 0.0)))
             except Exception as exc:  # one bad branch never loses the rest
                 failed[s["id"]] = f"pipe could not be built: {exc}"
         t2 = time.perf_counter()
@@ -894,7 +916,8 @@ class VesselTree:
                 return None  # already that narrow: nothing to try
             try:
                 q = branch_pipe(s["id"], s["name"], s["parent"], s["spine"], law, station_step_mm,
-                                s.get("cuts", ()), s.get("end", "flat"), s.get("seam_deg", 0.0))
+                                s.get("cuts", ()), s.get("end", "flat"), s.get("seam_deg", 0.0),
+                                s.get("neck_mm", 0.0))
             except Exception:  # noqa: BLE001 - no second pipe: the branch is left out as it was
                 return None
             narrowed[s["id"]] = (q, law)
@@ -918,6 +941,33 @@ class VesselTree:
 
 
 # ------------------------------------------------------------------- helpers
+def _neck(law: interpolate.BSpline, r_parent: float, share: float, length: float) -> interpolate.BSpline:
+    """``law`` (cubic) minus a smooth dip that takes its start down to ``share * r_parent``.
+
+    The dip is D (1 - u)^3 over ``[a, a + length]`` (u from 0 to 1), zero after:
+    it meets zero with value, slope and curvature at ``a + length`` (C2), so the
+    result is ``law`` with one knot inserted there, exactly.
+    """
+    k = law.k
+    a, e = float(law.t[k]), float(law.t[-k - 1])
+    drop = float(np.ravel(law(a))[0]) - share * r_parent
+    end = a + length
+    if drop <= 0.0 or not end < e:
+        return law
+    t = law.t
+    if not np.any(np.isclose(t, end, rtol=0.0, atol=1e-9)):
+        t = np.sort(np.r_[t, end])
+    dip = interpolate.BSpline(np.r_[[a] * 4, [end] * 4], np.array([drop, 0.0, 0.0, 0.0]), 3,
+                              extrapolate=False)
+    # Both pieces lie in the spline space of ``t``: the least squares fit on enough
+    # points per span reproduces their difference exactly.
+    inner = np.unique(t)
+    x = np.unique(np.linspace(inner[:-1], inner[1:], 6).ravel())
+    y = np.ravel(law(x)) - np.nan_to_num(np.ravel(dip(x)))
+    y[x > end] = np.ravel(law(x[x > end]))
+    return interpolate.make_lsq_spline(x, y, t, k)
+
+
 def _n_branches(n: int) -> str:
     return f"{n} branch" if n == 1 else f"{n} branches"
 

@@ -67,6 +67,7 @@ class RadiusField:
                 continue
             spine, law = spec["spine"], spec["radius"]
             a, b = float(spine.t[spine.k]), float(spine.t[-spine.k - 1])
+            a += float(spec.get("neck_mm", 0.0))  # a necked start inside the parent is not this vessel's
             u = np.linspace(a, b, max(int(np.ceil((b - a) / step_mm)), 2) + 1)
             pts.append(spine(u))
             rad.append(np.ravel(law(u)))

@@ -527,7 +527,7 @@ def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None
 def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolate.BSpline,
                 radius: interpolate.BSpline, station_step_mm: float = 2.0,
                 cuts: tuple[float, ...] | list[float] = (), end: str = "flat",
-                seam_deg: float = 0.0) -> BranchPipe:
+                seam_deg: float = 0.0, neck_mm: float = 0.0) -> BranchPipe:
     """The closed pipe of one branch (see :func:`tube_surface`) with its end data.
 
     Parameters
@@ -553,6 +553,10 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
         Where the wall's seam lies around the vessel (degrees from the
         rotation-minimizing frame's first normal); :func:`seam_angles` keeps
         it clear of the other vessels' walls.
+    neck_mm : float
+        Length of the pipe's start that lies inside its parent necked down
+        (``VesselTree.pipe_specs``: a child starting at its parent's end): the
+        pipe's ``start_radius`` and its probe points are taken from there on.
 
     Returns
     -------
@@ -569,7 +573,10 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
         raise GeometryError(f"branch {branch_id}: cuts {cuts} must lie inside the spine ({a:.3f}, {b:.3f})")
     surface = tube_surface(spine, radius, station_step_mm, seam_deg=seam_deg)
     d = spine.derivative()
-    r0, r1 = float(np.ravel(radius(a))[0]), float(np.ravel(radius(b))[0])
+    if not (isinstance(neck_mm, (int, float)) and 0.0 <= neck_mm < b - a):
+        raise GeometryError(f"branch {branch_id}: neck_mm must lie in [0, {b - a:.3f}), got {neck_mm!r}")
+    a_seen = a + float(neck_mm)  # where the pipe's own radius starts
+    r0, r1 = float(np.ravel(radius(a_seen))[0]), float(np.ravel(radius(b))[0])
     t1 = d(b) / np.linalg.norm(d(b))
     dome = (spine(b), t1, r1) if end == "dome" else None
     if not cuts:
@@ -589,7 +596,7 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
         return v / np.linalg.norm(v)
 
     # probe points on the axis, clear of the start (inside the parent) and the end cap
-    lo, hi = a + min(3.0 * r0, 0.5 * (b - a)), b - min(r1, 0.25 * (b - a))
+    lo, hi = a_seen + min(3.0 * r0, 0.5 * (b - a_seen)), b - min(r1, 0.25 * (b - a))
     at = np.linspace(lo, hi, 3) if hi > lo else np.full(3, 0.5 * (a + b))
     # round each probe, wall points (U, V = spine parameter) for the union's cheap check
     rings_uv = np.stack(np.broadcast_arrays(_RING_U[None, :], at[:, None]), axis=-1)
