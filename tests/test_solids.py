@@ -177,6 +177,12 @@ def test_bad_arguments():
         solid.to_trimesh(tolerance=-1.0)
     with pytest.raises(vc.VesselcadError, match="station_step_mm"):
         tree.solid(station_step_mm=0.0)
+    from vesselcad.kernel.pipes import branch_pipe
+
+    spec = tree.pipe_specs()[0]
+    for neck in (-0.5, 10.0, float("nan"), "1"):  # the spine is 10 mm long
+        with pytest.raises(vc.VesselcadError, match="branch 0: neck_mm"):
+            branch_pipe(0, "b", None, spec["spine"], spec["radius"], neck_mm=neck)
 
 
 def _inside_polyline_tubes(p: np.ndarray, branches: list[dict]) -> np.ndarray:
