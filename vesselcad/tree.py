@@ -963,8 +963,7 @@ def _neck(law: interpolate.BSpline, r_parent: float, share: float, length: float
     # points per span reproduces their difference exactly.
     inner = np.unique(t)
     x = np.unique(np.linspace(inner[:-1], inner[1:], 6).ravel())
-    y = np.ravel(law(x)) - np.nan_to_num(np.ravel(dip(x)))
-    y[x > end] = np.ravel(law(x[x > end]))
+    y = np.ravel(law(x)) - np.nan_to_num(np.ravel(dip(x)))  # the dip is NaN (here 0) past its end
     return interpolate.make_lsq_spline(x, y, t, k)
 
 
