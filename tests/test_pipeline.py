@@ -336,6 +336,68 @@ def test_two_daughters_of_a_missing_parent_are_not_joined_to_each_other():
     assert results[0].parent is None and results[1].parent is None
 
 
+def test_a_branch_whose_first_mm_were_not_paired_is_joined_where_both_skeletons_lead():
+    # The child leaves the parent at the fork F, but its first 7 mm were not paired (a stretch
+    # along the epipolar lines, say): its 3D start is 7 mm from the parent, too far for the 3D
+    # rule (2 mm + 1.5 radii) and 25-40 px off the parent in the images. The skeletons of both
+    # views run from its start straight to F: joined there. A stray vessel whose start lies
+    # 6 mm from the parent but that hangs from it elsewhere (through Q, 31 mm round) stays apart.
+    from vesselcad.pipeline import _link_parents
+
+    s = np.linspace(0.0, 1.0, 121)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]     # F = (0, 0, 0) is sample 60
+    child = s * [0.0, 25.0, 15.0]                                   # 29.2 mm from F
+    seen = child[np.linalg.norm(child, axis=1) >= 7.0]              # the paired part
+    g = np.array([10.0, -4.0, -4.5])                                # 6.0 mm from the parent
+    stray = g + s * [0.0, -20.0, -10.0]
+    q = np.array([25.0, 0.0, 0.0]) + s * (g - [25.0, 0.0, 0.0])     # the stray's real parent
+
+    def graph(view):
+        mask = np.zeros((view.rows, view.cols), np.uint8)
+        for pts, r_mm in ((parent, 1.5), (child, 1.0), (stray, 1.0), (q, 1.0)):
+            r_px = r_mm * view.magnification / view.pixel_spacing_mm[0]
+            cv2.polylines(mask, [np.round(view.project(pts) * 16).astype(np.int32)], False, 1,
+                          int(round(2 * r_px)), cv2.LINE_8, shift=4)
+        return vc.centreline_graph(mask.astype(bool), view)
+
+    graphs = (graph(VIEW_A), graph(VIEW_B))
+
+    def branches():
+        return [_branch(0, parent), _branch(1, seen), _branch(2, stray)]
+
+    results = branches()
+    _link_parents(results, (VIEW_A, VIEW_B))
+    assert [b.parent for b in results] == [None, None, None]
+    results = branches()
+    _link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
+    assert [b.parent for b in results] == [None, 0, None]
+    assert np.linalg.norm(results[1].points_mm[0]) < 0.3           # moved onto F
+    assert np.abs(results[1].points_mm[-20:] - seen[-20:]).max() == 0.0
+    assert results[1].warnings[0].startswith("joined across 7.0 mm to branch 0")
+    assert results[2].points_mm[0] == pytest.approx(g)
+
+
+def test_joins_along_the_skeletons_can_be_switched_off(monkeypatch):
+    import vesselcad.pipeline as pipeline
+
+    s = np.linspace(0.0, 1.0, 121)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
+    child = s * [0.0, 25.0, 15.0]
+    mask_of = {}
+    for view in (VIEW_A, VIEW_B):
+        mask = np.zeros((view.rows, view.cols), np.uint8)
+        for pts, r_mm in ((parent, 1.5), (child, 1.0)):
+            r_px = r_mm * view.magnification / view.pixel_spacing_mm[0]
+            cv2.polylines(mask, [np.round(view.project(pts) * 16).astype(np.int32)], False, 1,
+                          int(round(2 * r_px)), cv2.LINE_8, shift=4)
+        mask_of[view] = vc.centreline_graph(mask.astype(bool), view)
+    graphs = (mask_of[VIEW_A], mask_of[VIEW_B])
+    monkeypatch.setattr(pipeline, "SKELETON_DETOUR", None)
+    results = [_branch(0, parent), _branch(1, child[np.linalg.norm(child, axis=1) >= 7.0])]
+    pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
+    assert results[1].parent is None
+
+
 def test_a_daughter_of_a_junction_whose_depth_disagrees_starts_inside_its_parent():
     # Parent and daughter meet at one junction landmark pair; the daughter's 3D start came
     # out 5 mm off in depth (outside the parent's 1 mm lumen): moved onto the parent's end.

@@ -63,6 +63,13 @@ JOIN_REPROJECTION_PX = 10.0
 #: A linked branch whose 3D start lies outside its parent's lumen has it moved onto
 #: the parent when it is at most this far (mm) from it (``_link_parents``).
 MAX_JOIN_GAP_MM = 10.0
+#: A branch still without a parent whose 3D start lies at most ``MAX_JOIN_GAP_MM`` from another
+#: branch is joined to it when, in both views, the skeleton runs from the start's projection to
+#: that point's projection (each within ``JOIN_PX``) without a detour: along it no longer than
+#: ``SKELETON_DETOUR`` times the straight line plus ``SKELETON_DETOUR_PX`` (``_joins_along_skeletons``).
+#: None: not at all.
+SKELETON_DETOUR: float | None = 1.3
+SKELETON_DETOUR_PX = 5.0
 #: A 3D branch whose points lie, by their median, farther from the heart's surface fitted by the
 #: matching (``GraphMatch.surface``) than ``OFF_SURFACE_SIGMAS`` times that fit's spread, and at
 #: least ``OFF_SURFACE_MIN_MM``, is left out (``reconstruct(off_surface_sigmas=...)``): a pairing of
@@ -463,13 +470,18 @@ def _without_hooks(pts: np.ndarray, reach_mm: float = HOOK_REACH_MM, max_turn_de
 
 
 def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] | None = None,
-                  adjust: Callable[[], None] | None = None) -> None:
+                  adjust: Callable[[], None] | None = None,
+                  graphs: tuple[CentrelineGraph, CentrelineGraph] | None = None) -> None:
     """Parent of each branch: the branch whose end is its start landmark, else the nearest one.
 
     Candidate links (child start within 2 mm + 1.5 radii of another branch's
     centreline) are accepted cheapest first while they keep the forest acyclic.
     Given the views, a branch still without a parent whose start lies on another
-    branch in both images (within :data:`JOIN_PX`) is joined to it there. A child
+    branch in both images (within :data:`JOIN_PX`) is joined to it there. Given the
+    graphs too, a branch still without a parent is joined to another branch up to
+    :data:`MAX_JOIN_GAP_MM` away in 3D where both views' skeletons run between the two
+    without a detour (:func:`_joins_along_skeletons`: a stretch of vessel the matching
+    did not pair, between two pieces it did). A child
     whose 3D start is then outside its parent's lumen (the two curves disagree in
     depth near the junction, where a vessel runs along the epipolar lines) has its
     start moved onto the parent, up to :data:`MAX_JOIN_GAP_MM`: the solid needs the
@@ -519,6 +531,8 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
     accept(cand)
     if views is not None:
         accept(_joins_in_both_views(ok, views, set(links)))
+        if graphs is not None and SKELETON_DETOUR is not None:
+            accept(_joins_along_skeletons(ok, views, graphs, set(links), find))
     if adjust is not None:
         adjust()
     def depth(c: int) -> int:
@@ -655,6 +669,75 @@ def _joins_in_both_views(ok: list[BranchResult], views: tuple[CArmView, CArmView
             if off <= JOIN_REPROJECTION_PX and along > p.radius_mm[0]:
                 note = f"starts on branch {p.id} in both views ({on:.1f} px): "
                 joins.append((on + off, c.id, p.id, i, note))
+    return joins
+
+
+def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmView],
+                           graphs: tuple[CentrelineGraph, CentrelineGraph], linked: set[int],
+                           tree_of: Callable[[int], int]) -> list[tuple[float, int, int, int, str]]:
+    """Candidate links across a stretch the matching left unpaired: (gap mm, child, parent,
+    index of the parent's point, note).
+
+    For each branch without a parent, the nearest 3D point of every branch of another
+    tree (``tree_of``) within :data:`MAX_JOIN_GAP_MM` of its start, not within the first
+    radius of that branch (two daughters of a parent that was not reconstructed start
+    near each other). It is a candidate when in each view the skeleton passes within
+    :data:`JOIN_PX` of both projections and runs between them no longer than
+    :data:`SKELETON_DETOUR` times the straight line plus :data:`SKELETON_DETOUR_PX`: the
+    two pieces are one vessel in both images, not two vessels that pass close in 3D
+    (those join in the images, if at all, by a detour through other vessels).
+    """
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    from .centreline2d import _pixel_graph
+
+    cands = []
+    for c in ok:
+        if c.id in linked:
+            continue
+        start = c.points_mm[0]
+        for p in ok:
+            if tree_of(p.id) == tree_of(c.id):
+                continue
+            d = np.linalg.norm(p.points_mm - start, axis=1)
+            i = int(np.argmin(d))
+            along = float(np.linalg.norm(np.diff(p.points_mm[:i + 1], axis=0), axis=1).sum())
+            if d[i] <= MAX_JOIN_GAP_MM and along > p.radius_mm[0]:
+                cands.append((float(d[i]), c, p, i))
+    if not cands:
+        return []
+    nets: list[tuple[cKDTree, Any] | None] = []
+    for g in graphs:
+        rr, cc, adj = _pixel_graph(g.skeleton)
+        if not len(rr):
+            nets.append(None)
+            continue
+        xy = np.stack([cc, rr], axis=1).astype(float)
+        coo = adj.tocoo()
+        steps = np.linalg.norm(xy[coo.row] - xy[coo.col], axis=1)  # 1 or sqrt(2) px
+        nets.append((cKDTree(xy), sparse.csr_matrix((steps, (coo.row, coo.col)), shape=adj.shape)))
+    joins = []
+    for gap, c, p, i in cands:
+        detours = []
+        for k, (view, pts2d) in enumerate(zip(views, (c.pair.points_a_px, c.pair.points_b_px), strict=True)):
+            if nets[k] is None:
+                break
+            kd, net = nets[k]
+            q = view.project(p.points_mm[i][None])[0]
+            (d0, j0), (d1, j1) = kd.query(pts2d[0]), kd.query(q)
+            straight = float(np.linalg.norm(q - pts2d[0]))
+            limit = SKELETON_DETOUR * straight + SKELETON_DETOUR_PX
+            if max(d0, d1) > JOIN_PX:
+                break
+            run = float(csgraph.dijkstra(net, indices=int(j0), limit=limit + 1.0)[int(j1)])
+            if not run <= limit:
+                break
+            detours.append(run)
+        else:
+            note = (f"joined across {gap:.1f} mm to branch {p.id}, where both views' skeletons run between "
+                    f"the two ({detours[0]:.0f} and {detours[1]:.0f} px): ")
+            joins.append((gap, c.id, p.id, i, note))
     return joins
 
 
@@ -1024,7 +1107,8 @@ def reconstruct(
         bar.close()
     _drop_off_surface(results, match.surface, _ostium(match, phase), off_surface_sigmas)
     # the depth from the surface moves points in view B: the parents are chosen before it
-    _link_parents(results, views, adjust=lambda: _depth_from_surface(results, views, match.surface))
+    _link_parents(results, views, adjust=lambda: _depth_from_surface(results, views, match.surface),
+                  graphs=(ga, gb))
     timings["centrelines_3d"] = time.perf_counter() - t
     for b in results:
         if not b.ok:
