@@ -375,6 +375,13 @@ def test_a_branch_whose_first_mm_were_not_paired_is_joined_where_both_skeletons_
     assert np.abs(results[1].points_mm[-20:] - seen[-20:]).max() == 0.0
     assert results[1].warnings[0].startswith("joined across 7.0 mm to branch 0")
     assert results[2].points_mm[0] == pytest.approx(g)
+    # a branch that starts at the matched roots (the ostium) stays the root of its tree
+    results = [_branch(0, parent), _branch(1, seen, start=(0, 0)), _branch(2, stray)]
+    _link_parents(results, (VIEW_A, VIEW_B), graphs=graphs, roots=(0, 0))
+    assert [b.parent for b in results] == [None, None, None]
+    results = [_branch(0, parent), _branch(1, seen, start=(0, 0)), _branch(2, stray)]
+    _link_parents(results, (VIEW_A, VIEW_B), graphs=graphs, roots=(0, 1))
+    assert [b.parent for b in results] == [None, 0, None]
 
 
 def test_joins_along_the_skeletons_can_be_switched_off(monkeypatch):

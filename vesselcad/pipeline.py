@@ -471,7 +471,8 @@ def _without_hooks(pts: np.ndarray, reach_mm: float = HOOK_REACH_MM, max_turn_de
 
 def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] | None = None,
                   adjust: Callable[[], None] | None = None,
-                  graphs: tuple[CentrelineGraph, CentrelineGraph] | None = None) -> None:
+                  graphs: tuple[CentrelineGraph, CentrelineGraph] | None = None,
+                  roots: tuple[int | None, int | None] | None = None) -> None:
     """Parent of each branch: the branch whose end is its start landmark, else the nearest one.
 
     Candidate links (child start within 2 mm + 1.5 radii of another branch's
@@ -481,7 +482,8 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
     graphs too, a branch still without a parent is joined to another branch up to
     :data:`MAX_JOIN_GAP_MM` away in 3D where both views' skeletons run between the two
     without a detour (:func:`_joins_along_skeletons`: a stretch of vessel the matching
-    did not pair, between two pieces it did). A child
+    did not pair, between two pieces it did), unless it starts at ``roots``, the
+    matched root landmarks (the ostium stays the inlet of its tree). A child
     whose 3D start is then outside its parent's lumen (the two curves disagree in
     depth near the junction, where a vessel runs along the epipolar lines) has its
     start moved onto the parent, up to :data:`MAX_JOIN_GAP_MM`: the solid needs the
@@ -532,7 +534,9 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
     if views is not None:
         accept(_joins_in_both_views(ok, views, set(links)))
         if graphs is not None and SKELETON_DETOUR is not None:
-            accept(_joins_along_skeletons(ok, views, graphs, set(links), find))
+            known = roots is not None and None not in roots
+            ostium = {b.id for b in ok if known and b.pair.start == tuple(roots)}
+            accept(_joins_along_skeletons(ok, views, graphs, set(links) | ostium, find))
     if adjust is not None:
         adjust()
     def depth(c: int) -> int:
@@ -678,14 +682,16 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
     """Candidate links across a stretch the matching left unpaired: (gap mm, child, parent,
     index of the parent's point, note).
 
-    For each branch without a parent, the nearest 3D point of every branch of another
-    tree (``tree_of``) within :data:`MAX_JOIN_GAP_MM` of its start, not within the first
-    radius of that branch (two daughters of a parent that was not reconstructed start
-    near each other). It is a candidate when in each view the skeleton passes within
-    :data:`JOIN_PX` of both projections and runs between them no longer than
-    :data:`SKELETON_DETOUR` times the straight line plus :data:`SKELETON_DETOUR_PX`: the
-    two pieces are one vessel in both images, not two vessels that pass close in 3D
-    (those join in the images, if at all, by a detour through other vessels).
+    For each branch without a parent (not in ``linked``: those linked already, and the
+    one starting at the ostium, which stays its tree's root), the nearest 3D point of
+    every branch of another tree (``tree_of``) within :data:`MAX_JOIN_GAP_MM` of its
+    start, not within the first radius of that branch (two daughters of a parent that
+    was not reconstructed start near each other). It is a candidate when in each view
+    the skeleton passes within :data:`JOIN_PX` of both projections and runs between
+    them no longer than :data:`SKELETON_DETOUR` times the straight line plus
+    :data:`SKELETON_DETOUR_PX`: the two pieces are one vessel in both images, not two
+    vessels that pass close in 3D (those join in the images, if at all, by a detour
+    through other vessels).
     """
     from scipy import sparse
     from scipy.sparse import csgraph
@@ -1108,7 +1114,7 @@ def reconstruct(
     _drop_off_surface(results, match.surface, _ostium(match, phase), off_surface_sigmas)
     # the depth from the surface moves points in view B: the parents are chosen before it
     _link_parents(results, views, adjust=lambda: _depth_from_surface(results, views, match.surface),
-                  graphs=(ga, gb))
+                  graphs=(ga, gb), roots=match.roots)
     timings["centrelines_3d"] = time.perf_counter() - t
     for b in results:
         if not b.ok:
