@@ -152,6 +152,36 @@ def test_report_follows_the_contract(recon, tmp_path):
     assert err.mean() < 0.5
 
 
+def test_overlay_marks_starts_joined_across_an_unpaired_stretch(recon, tmp_path):
+    # A branch whose warnings say it was joined to another tree gets a magenta diamond at its
+    # start in both views; the picture is otherwise the same.
+    import dataclasses
+
+    from PIL import Image
+
+    from vesselcad.report import plot_overlays
+
+    k = next(i for i, b in enumerate(recon.branches) if b.ok and b.parent is not None)
+    branches = list(recon.branches)
+    branches[k] = dataclasses.replace(branches[k], warnings=[
+        *branches[k].warnings, "joined across 5.0 mm to branch 0, where both views' skeletons run between "
+        "the two (20 and 22 px): start moved 5.0 mm onto branch 0, outside of whose lumen it was"])
+    plain = np.asarray(Image.open(plot_overlays(recon, tmp_path / "plain.png")).convert("RGB")).astype(int)
+    joined = np.asarray(Image.open(plot_overlays(dataclasses.replace(recon, branches=branches),
+                                                 tmp_path / "joined.png")).convert("RGB")).astype(int)
+    diff = np.any(plain != joined, axis=2)
+
+    def magenta(im):
+        return (im[..., 0] > 240) & (im[..., 1] < 20) & (im[..., 2] > 240)
+
+    assert not magenta(plain).any()
+    cols = np.flatnonzero(magenta(joined).any(axis=0))
+    half = joined.shape[1] // 2
+    assert (cols < half).any() and (cols >= half).any()      # one marker in each view
+    assert not (magenta(joined) & ~diff).any()
+    assert diff.sum() < 1000                                   # the two markers, nothing else
+
+
 def test_cli_reconstruct_from_dicom(tmp_path):
     import build123d
     import trimesh

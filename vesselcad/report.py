@@ -55,6 +55,9 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
                 ax.plot(p[:, 0], p[:, 1], "-", color=c, lw=2.0)
                 ax.text(p[len(p) // 2, 0], p[len(p) // 2, 1], str(b.id), color=c, fontsize=8,
                         fontweight="bold")
+                if any(w.startswith("joined across") for w in b.warnings):
+                    # joined to another tree across a stretch the matching left unpaired: check it
+                    ax.plot(*p[0], "D", color="#ff00ff", mec="black", ms=8)
             else:
                 ax.plot(piece[:, 0], piece[:, 1], ":", color="red", lw=1.5)
         frame_no = rec.phase.frame_a if k == 0 else rec.phase.frame_b
@@ -74,12 +77,12 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
     e = rec.errors
     fig.suptitle("segmentation (colours), matched 2D pieces (white), reprojected 3D centrelines (bold, "
                  "numbered), failed branches (red dotted), root of each view (yellow star), phase key "
-                 "point (cyan +)"
+                 "point (cyan +),\nstart joined to another tree across an unpaired stretch (magenta diamond)"
                  + (f"\nreprojection {e['mean_px']:.2f} ± {e['sd_px']:.2f} px "
                     f"({e['mean_mm']:.3f} ± {e['sd_mm']:.3f} mm), max {e['max_px']:.2f} px" if e else ""),
                  fontsize=10)
     # fixed margins (tight_layout measured every text for 0.15 s a picture: docs/results.md)
-    fig.subplots_adjust(left=0.005, right=0.995, bottom=0.005, top=0.89, wspace=0.01)
+    fig.subplots_adjust(left=0.005, right=0.995, bottom=0.005, top=0.86, wspace=0.01)
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
