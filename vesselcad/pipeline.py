@@ -70,6 +70,8 @@ MAX_JOIN_GAP_MM = 10.0
 #: None: not at all.
 SKELETON_DETOUR: float | None = 1.3
 SKELETON_DETOUR_PX = 5.0
+#: How the warning of a branch joined that way begins (the report's overlay marks its start).
+JOINED_NOTE = "joined across"
 #: A 3D branch whose points lie, by their median, farther from the heart's surface fitted by the
 #: matching (``GraphMatch.surface``) than ``OFF_SURFACE_SIGMAS`` times that fit's spread, and at
 #: least ``OFF_SURFACE_MIN_MM``, is left out (``reconstruct(off_surface_sigmas=...)``): a pairing of
@@ -741,8 +743,8 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
                 break
             detours.append(run)
         else:
-            note = (f"joined across {gap:.1f} mm to branch {p.id}, where both views' skeletons run between "
-                    f"the two ({detours[0]:.0f} and {detours[1]:.0f} px): ")
+            note = (f"{JOINED_NOTE} {gap:.1f} mm to branch {p.id}, where both views' skeletons run "
+                    f"between the two ({detours[0]:.0f} and {detours[1]:.0f} px): ")
             joins.append((gap, c.id, p.id, i, note))
     return joins
 

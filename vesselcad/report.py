@@ -40,6 +40,7 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from .pipeline import JOINED_NOTE
     from .segment import overlay_labels
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 6.8), dpi=100)
@@ -55,7 +56,7 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
                 ax.plot(p[:, 0], p[:, 1], "-", color=c, lw=2.0)
                 ax.text(p[len(p) // 2, 0], p[len(p) // 2, 1], str(b.id), color=c, fontsize=8,
                         fontweight="bold")
-                if any(w.startswith("joined across") for w in b.warnings):
+                if any(w.startswith(JOINED_NOTE) for w in b.warnings):
                     # joined to another tree across a stretch the matching left unpaired: check it
                     ax.plot(*p[0], "D", color="#ff00ff", mec="black", ms=8)
             else:
