@@ -710,8 +710,7 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
                 continue
             d = np.linalg.norm(p.points_mm - start, axis=1)
             i = int(np.argmin(d))
-            along = float(np.linalg.norm(np.diff(p.points_mm[:i + 1], axis=0), axis=1).sum())
-            if d[i] <= MAX_JOIN_GAP_MM and along > p.radius_mm[0]:
+            if d[i] <= MAX_JOIN_GAP_MM and _length(p.points_mm[:i + 1]) > p.radius_mm[0]:
                 cands.append((float(d[i]), c, p, i))
     if not cands:
         return []
