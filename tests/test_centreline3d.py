@@ -211,6 +211,36 @@ def test_reprojection_error_metric_on_known_offsets():
     assert both.max_px < 1e-6
 
 
+def test_mask_reprojection_against_a_drawn_band():
+    # PA view: a 3D line along x at the isocentre projects onto row 255.5 (between two pixel rows).
+    pa = vc.CArmView(0.0, 0.0, 1100.0, 750.0, (0.3, 0.3), 512, 512)
+    line = np.c_[np.linspace(-20.0, 20.0, 81), np.zeros(81), np.zeros(81)]
+    np.testing.assert_allclose(pa.project(line)[:, 1], 255.5, atol=1e-9)
+    near = np.zeros((512, 512), bool)
+    near[250:261, 100:411] = True  # an 11-row band: its centreline is row 255
+    far = np.zeros((512, 512), bool)
+    far[258:269, 100:411] = True  # rows 258-268: centreline row 263, the projection off the band
+    m = vc.mask_reprojection(line, pa, near)
+    assert m.mean_px == pytest.approx(0.5, abs=1e-6) and m.max_px == pytest.approx(0.5, abs=1e-6)
+    assert m.mean_mm == pytest.approx(0.5 * 0.3 * 750.0 / 1100.0, abs=1e-9)
+    assert m.on_vessel_share == 1.0
+    both = vc.mask_reprojection([line, line[:41]], [pa, pa], [near, far])  # 81 + 41 samples in each view
+    assert both.px.shape == (2 * 122,)
+    np.testing.assert_allclose(both.px[both.view == 1], 7.5, atol=1e-6)
+    assert both.on_vessel_share == pytest.approx(0.5)
+    assert both.to_dict()["views"][1] == {"mean_mm": pytest.approx(7.5 * 0.3 * 750 / 1100), "on_vessel": 0.0}
+    tree = vc.VesselTree([vc.TreeBranch(id=0, parent=None, points=line, radius=np.full(81, 1.0))])
+    assert vc.mask_reprojection(tree, [pa], [near]).mean_px == pytest.approx(0.5, abs=1e-6)
+    with pytest.raises(vc.ArgumentError, match=r"masks\[0\].*shape"):
+        vc.mask_reprojection(line, pa, near[:500])
+    with pytest.raises(vc.ArgumentError, match=r"masks\[1\]: no vessel centreline"):
+        vc.mask_reprojection(line, [pa, pa], [near, np.zeros((512, 512), bool)])
+    with pytest.raises(vc.ArgumentError, match="one mask per view"):
+        vc.mask_reprojection(line, [pa, pa], [near])
+    with pytest.raises(vc.ArgumentError, match="curves"):
+        vc.mask_reprojection("tree.json", pa, near)
+
+
 def test_centreline_error_metric_on_known_offsets():
     truth = segment()
     unit = np.cross(truth[-1] - truth[0], [0.0, 0.0, 1.0])

@@ -24,7 +24,7 @@ from .errors import (
 from .geometry import CArmView, Reconstruction2View, reconstruction_error, triangulate
 from .io import XARun, load_run, save_run
 from .matching import BranchPair, GraphMatch, LandmarkMatch, Unmatched, match_graphs, plot_graph_match
-from .metrics import centreline_error, reprojection_error
+from .metrics import MaskReprojection, centreline_error, mask_reprojection, reprojection_error
 from .phase import PhaseError, PhaseMatch, match_phase
 from .pipeline import BranchResult, Reconstruction, ReconstructionError, reconstruct
 from .refine import Refinement, refine_geometry
@@ -85,6 +85,8 @@ __all__ = [
     "cfd",
     "reprojection_error",
     "centreline_error",
+    "mask_reprojection",
+    "MaskReprojection",
     "reconstruction_error",
     "VesselcadError",
     "ArgumentError",
