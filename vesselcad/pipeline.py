@@ -33,6 +33,7 @@ from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
 from .phase import OBJECTS, PREFER_FILL, PhaseMatch, match_phase
 from .refine import Refinement, refine_geometry
 from .segment import Segmenter
+from .splines import resample_by_arclength
 from .surface import semi_axes
 from .tree import TreeBranch, VesselTree
 
@@ -63,6 +64,11 @@ JOIN_REPROJECTION_PX = 10.0
 #: A linked branch whose 3D start lies outside its parent's lumen has it moved onto
 #: the parent when it is at most this far (mm) from it (``_link_parents``).
 MAX_JOIN_GAP_MM = 10.0
+#: A moved start is brought back onto both images' vessels in this many rounds (0: not at all) ...
+ON_VESSEL_ROUNDS = 3
+#: ... of Gauss-Newton steps damped by this much (px² per mm²; the views give 20-50 where they
+#: decide a direction, near 0 along the epipolar lines).
+ON_VESSEL_DAMPING = 1.0
 #: A branch still without a parent whose 3D start lies at most ``MAX_JOIN_GAP_MM`` from another
 #: branch is joined to it when, in both views, the skeleton runs from the start's projection to
 #: that point's projection (each within ``JOIN_PX``) without a detour: along it no longer than
@@ -550,7 +556,11 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         target = par.points_mm[i]
         gap = float(np.linalg.norm(child.points_mm[0] - target))
         if par.radius_mm[i] < gap <= MAX_JOIN_GAP_MM:
-            child.points_mm = _moved_start(child.points_mm, target)
+            moved = _moved_start(child.points_mm, target)
+            if views is not None and ON_VESSEL_ROUNDS:
+                moved = _back_on_vessels(moved, child.points_mm, views,
+                                         (child.pair.points_a_px, child.pair.points_b_px))
+            child.points_mm = moved
             child.warnings.append(f"{why}start moved {gap:.1f} mm onto branch {p}, outside of whose "
                                   "lumen it was")
 
@@ -746,6 +756,53 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
                     f"between the two ({detours[0]:.0f} and {detours[1]:.0f} px): ")
             joins.append((gap, c.id, p.id, i, note))
     return joins
+
+
+def _back_on_vessels(moved: np.ndarray, original: np.ndarray, views: tuple[CArmView, CArmView],
+                     pieces: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """A moved start (:func:`_moved_start`) brought back onto the child's vessel in both images.
+
+    The shift is a smooth guess: its projections leave the vessel where it is not
+    along it. In each view the child's vessel is its 2D piece (``pieces``), led in by a
+    straight segment from the new start's projection (on the parent) to the piece's
+    nearer end: for a join, the skeleton runs there without a detour. Each shifted point
+    (not the first, on the parent) is moved by regularized Gauss-Newton steps towards
+    the 3D point whose projections are the nearest points of those two paths
+    (``ON_VESSEL_DAMPING`` keeps the depth where the views do not decide it), the steps
+    smoothed along the curve; ``ON_VESSEL_ROUNDS`` rounds. Where the shift has faded out
+    the curve is the child's own, which already reprojects onto its pieces: the steps
+    vanish there.
+    """
+    changed = np.flatnonzero(np.linalg.norm(moved - original, axis=1) > 1e-9)
+    if len(changed) < 2:
+        return moved
+    idx = np.arange(1, changed[-1] + 1)
+    x = moved[idx].copy()
+    lines = []
+    for view, piece in zip(views, pieces, strict=True):
+        piece = np.asarray(piece, float)
+        first = view.project(original[:1])[0]
+        if np.linalg.norm(piece[-1] - first) < np.linalg.norm(piece[0] - first):
+            piece = piece[::-1]
+        path = resample_by_arclength(np.vstack([view.project(moved[:1]), piece]), 0.25)
+        lines.append((path, cKDTree(path)))
+    eps = 1e-3
+    for _ in range(ON_VESSEL_ROUNDS):
+        rows, res = [], []
+        for view, (dense, tree) in zip(views, lines, strict=True):
+            proj = view.project(x)
+            _, k = tree.query(proj)
+            res.append(dense[k] - proj)
+            rows.append(np.stack([(view.project(x + eps * e) - proj) / eps for e in np.eye(3)], axis=2))
+        jac = np.concatenate(rows, axis=1)  # (n, 4, 3): px per mm
+        r = np.concatenate(res, axis=1)  # (n, 4) px
+        a = np.einsum("nij,nik->njk", jac, jac) + ON_VESSEL_DAMPING * np.eye(3)
+        step = np.linalg.solve(a, np.einsum("nij,ni->nj", jac, r)[..., None])[..., 0]
+        step = ndimage.uniform_filter1d(step, size=min(5, len(step)), axis=0, mode="nearest")
+        x += step
+    out = moved.copy()
+    out[idx] = x
+    return out
 
 
 def _moved_start(points: np.ndarray, target: np.ndarray) -> np.ndarray:
