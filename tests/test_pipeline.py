@@ -398,6 +398,32 @@ def test_a_moved_start_is_brought_back_onto_the_vessels_of_both_images(monkeypat
     assert np.abs(back[-35:] - wrong[-35:]).max() == 0.0                          # past the shift
 
 
+def test_a_moved_start_is_not_turned_back_along_its_parents_end(monkeypatch):
+    # A child at its parent's end whose 2D pieces lead back alongside the parent: brought onto
+    # them, its first 2 mm would leave the parent at ~140 degrees (OCCT's union can hang on such
+    # a junction), so the smooth shift stays. Mid-parent, the same child is brought back.
+    import vesselcad.pipeline as pipeline
+
+    s = np.linspace(0.0, 1.0, 81)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [30.0, 0.0, 0.0]       # ends at the origin
+    back = np.array([-0.8, 0.6, 0.0])                                 # 143 deg from +x
+    child = s * 25.0 * back
+    err = np.clip(1.0 - np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(child, axis=0), axis=1))] / 12.0, 0, 1)
+    wrong = child + err[:, None] * [0.0, 0.0, 6.0]
+
+    def moved(rounds, par):
+        monkeypatch.setattr(pipeline, "ON_VESSEL_ROUNDS", rounds)
+        results = [_branch(0, par), _branch(1, child, wrong)]
+        pipeline._link_parents(results, (VIEW_A, VIEW_B))
+        assert results[1].parent == 0
+        return results[1].points_mm
+
+    rounds = pipeline.ON_VESSEL_ROUNDS
+    np.testing.assert_array_equal(moved(rounds, parent), moved(0, parent))
+    longer = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]       # the origin mid-parent
+    assert np.abs(moved(rounds, longer) - moved(0, longer)).max() > 0.5
+
+
 def test_two_daughters_of_a_missing_parent_are_not_joined_to_each_other():
     from vesselcad.pipeline import _link_parents
 

@@ -69,6 +69,11 @@ ON_VESSEL_ROUNDS = 3
 #: ... of Gauss-Newton steps damped by this much (px² per mm²; the views give 20-50 where they
 #: decide a direction, near 0 along the epipolar lines).
 ON_VESSEL_DAMPING = 1.0
+#: ... and ramped in over this length (mm) from the new start; not where a child would then
+#: leave its parent's end at more than this angle (degrees from the parent's direction; its
+#: first 2 mm) and more steeply than the shift alone made it.
+ON_VESSEL_RAMP_MM = 2.0
+ON_VESSEL_MAX_ANGLE_DEG = 120.0
 #: A branch still without a parent whose 3D start lies at most ``MAX_JOIN_GAP_MM`` from another
 #: branch is joined to it when, in both views, the skeleton runs from the start's projection to
 #: that point's projection (each within ``JOIN_PX``) without a detour: along it no longer than
@@ -558,8 +563,15 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         if par.radius_mm[i] < gap <= MAX_JOIN_GAP_MM:
             moved = _moved_start(child.points_mm, target)
             if views is not None and ON_VESSEL_ROUNDS:
-                moved = _back_on_vessels(moved, child.points_mm, views,
-                                         (child.pair.points_a_px, child.pair.points_b_px))
+                back = _back_on_vessels(moved, child.points_mm, views,
+                                        (child.pair.points_a_px, child.pair.points_b_px))
+                # not where the vessel would then leave its parent's end backwards (a start
+                # that runs back along the parent: OCCT's union can hang on it, lca 2003)
+                forward = par.points_mm[min(i + 1, len(par.points_mm) - 1)] - par.points_mm[max(i - 1, 0)]
+                a0, a1 = _leaving_angle(moved, forward), _leaving_angle(back, forward)
+                at_end = _length(par.points_mm[i:]) <= 2.0 * float(par.radius_mm[i])
+                if not at_end or a1 <= max(a0, ON_VESSEL_MAX_ANGLE_DEG):
+                    moved = back
             child.points_mm = moved
             child.warnings.append(f"{why}start moved {gap:.1f} mm onto branch {p}, outside of whose "
                                   "lumen it was")
@@ -769,7 +781,8 @@ def _back_on_vessels(moved: np.ndarray, original: np.ndarray, views: tuple[CArmV
     (not the first, on the parent) is moved by regularized Gauss-Newton steps towards
     the 3D point whose projections are the nearest points of those two paths
     (``ON_VESSEL_DAMPING`` keeps the depth where the views do not decide it), the steps
-    smoothed along the curve; ``ON_VESSEL_ROUNDS`` rounds. Where the shift has faded out
+    smoothed along the curve and ramped in over the first ``ON_VESSEL_RAMP_MM`` (no kink
+    at the new start, inside the parent); ``ON_VESSEL_ROUNDS`` rounds. Where the shift has faded out
     the curve is the child's own, which already reprojects onto its pieces: the steps
     vanish there.
     """
@@ -778,6 +791,8 @@ def _back_on_vessels(moved: np.ndarray, original: np.ndarray, views: tuple[CArmV
         return moved
     idx = np.arange(1, changed[-1] + 1)
     x = moved[idx].copy()
+    along = np.cumsum(np.linalg.norm(np.diff(moved[: idx[-1] + 1], axis=0), axis=1))
+    ramp = np.clip(along / ON_VESSEL_RAMP_MM, 0.0, 1.0)[:, None]  # no kink at the new start
     lines = []
     for view, piece in zip(views, pieces, strict=True):
         piece = np.asarray(piece, float)
@@ -799,10 +814,19 @@ def _back_on_vessels(moved: np.ndarray, original: np.ndarray, views: tuple[CArmV
         a = np.einsum("nij,nik->njk", jac, jac) + ON_VESSEL_DAMPING * np.eye(3)
         step = np.linalg.solve(a, np.einsum("nij,ni->nj", jac, r)[..., None])[..., 0]
         step = ndimage.uniform_filter1d(step, size=min(5, len(step)), axis=0, mode="nearest")
-        x += step
+        x += ramp * step
     out = moved.copy()
     out[idx] = x
     return out
+
+
+def _leaving_angle(points: np.ndarray, forward: np.ndarray, reach_mm: float = 2.0) -> float:
+    """Angle (degrees) between ``forward`` and the chord from a curve's start to its point
+    ``reach_mm`` along it (its direction as it leaves its start)."""
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    chord = points[min(int(np.searchsorted(s, reach_mm)), len(points) - 1)] - points[0]
+    den = float(np.linalg.norm(chord) * np.linalg.norm(forward))
+    return float(np.degrees(np.arccos(np.clip(chord @ forward / den, -1.0, 1.0)))) if den > 0 else 0.0
 
 
 def _moved_start(points: np.ndarray, target: np.ndarray) -> np.ndarray:
