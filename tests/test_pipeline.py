@@ -331,6 +331,19 @@ def _branch(k, pts3d, pts_mm=None, start=(None, None), end=(None, None)):
     return BranchResult(id=k, pair=pair, points_mm=pts, radius_mm=np.full(n, 1.0))
 
 
+def _drawn_graphs(*vessels):
+    """Both views' centreline graphs of masks drawn from 3D ``(points, radius_mm)`` vessels."""
+    graphs = []
+    for view in (VIEW_A, VIEW_B):
+        mask = np.zeros((view.rows, view.cols), np.uint8)
+        for pts, r_mm in vessels:
+            r_px = r_mm * view.magnification / view.pixel_spacing_mm[0]
+            cv2.polylines(mask, [np.round(view.project(pts) * 16).astype(np.int32)], False, 1,
+                          int(round(2 * r_px)), cv2.LINE_8, shift=4)
+        graphs.append(vc.centreline_graph(mask.astype(bool), view))
+    return tuple(graphs)
+
+
 def test_a_branch_starting_on_another_in_both_views_is_joined_to_it_there():
     from vesselcad.pipeline import _link_parents
 
@@ -369,19 +382,12 @@ def test_a_moved_start_is_brought_back_onto_the_vessels_of_both_images(monkeypat
     child = fork + s * [0.0, 25.0, 15.0]
     err = np.clip(1.0 - np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(child, axis=0), axis=1))] / 12.0, 0, 1)
     wrong = child + err[:, None] * [0.0, 0.0, 6.0]
-    graphs = []
-    for view in (VIEW_A, VIEW_B):
-        mask = np.zeros((view.rows, view.cols), np.uint8)
-        for pts, r_mm in ((parent, 1.5), (child, 1.0)):
-            r_px = r_mm * view.magnification / view.pixel_spacing_mm[0]
-            cv2.polylines(mask, [np.round(view.project(pts) * 16).astype(np.int32)], False, 1,
-                          int(round(2 * r_px)), cv2.LINE_8, shift=4)
-        graphs.append(vc.centreline_graph(mask.astype(bool), view))
+    graphs = _drawn_graphs((parent, 1.5), (child, 1.0))
 
     def moved(rounds):
         monkeypatch.setattr(pipeline, "ON_VESSEL_ROUNDS", rounds)
         results = [_branch(0, parent), _branch(1, child, wrong)]
-        pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=tuple(graphs))
+        pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
         assert results[1].parent == 0
         return results[1].points_mm
 
@@ -451,15 +457,7 @@ def test_a_branch_whose_first_mm_were_not_paired_is_joined_where_both_skeletons_
     stray = g + s * [0.0, -20.0, -10.0]
     q = np.array([25.0, 0.0, 0.0]) + s * (g - [25.0, 0.0, 0.0])     # the stray's real parent
 
-    def graph(view):
-        mask = np.zeros((view.rows, view.cols), np.uint8)
-        for pts, r_mm in ((parent, 1.5), (child, 1.0), (stray, 1.0), (q, 1.0)):
-            r_px = r_mm * view.magnification / view.pixel_spacing_mm[0]
-            cv2.polylines(mask, [np.round(view.project(pts) * 16).astype(np.int32)], False, 1,
-                          int(round(2 * r_px)), cv2.LINE_8, shift=4)
-        return vc.centreline_graph(mask.astype(bool), view)
-
-    graphs = (graph(VIEW_A), graph(VIEW_B))
+    graphs = _drawn_graphs((parent, 1.5), (child, 1.0), (stray, 1.0), (q, 1.0))
 
     def branches():
         return [_branch(0, parent), _branch(1, seen), _branch(2, stray)]
@@ -489,15 +487,7 @@ def test_joins_along_the_skeletons_can_be_switched_off(monkeypatch):
     s = np.linspace(0.0, 1.0, 121)[:, None]
     parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
     child = s * [0.0, 25.0, 15.0]
-    mask_of = {}
-    for view in (VIEW_A, VIEW_B):
-        mask = np.zeros((view.rows, view.cols), np.uint8)
-        for pts, r_mm in ((parent, 1.5), (child, 1.0)):
-            r_px = r_mm * view.magnification / view.pixel_spacing_mm[0]
-            cv2.polylines(mask, [np.round(view.project(pts) * 16).astype(np.int32)], False, 1,
-                          int(round(2 * r_px)), cv2.LINE_8, shift=4)
-        mask_of[view] = vc.centreline_graph(mask.astype(bool), view)
-    graphs = (mask_of[VIEW_A], mask_of[VIEW_B])
+    graphs = _drawn_graphs((parent, 1.5), (child, 1.0))
     monkeypatch.setattr(pipeline, "SKELETON_DETOUR", None)
     results = [_branch(0, parent), _branch(1, child[np.linalg.norm(child, axis=1) >= 7.0])]
     pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)

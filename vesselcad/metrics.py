@@ -189,43 +189,18 @@ def centreline_error(curve: Any, truth_mm: Any, step_mm: float = 0.5, within_mm:
 
 
 @dataclass(frozen=True)
-class MaskReprojection:
+class MaskReprojection(ReprojectionError):
     """A reconstruction reprojected onto independent vessel masks (:func:`mask_reprojection`).
 
     ``px``/``mm`` hold each projected sample's distance to the mask's 2D
-    centreline (mm at the isocentre plane), ``on_vessel`` whether it lands on
-    a vessel pixel of the mask, ``view`` the index of the view it was
-    projected into; all concatenated over the views.
+    centreline (mm at the isocentre plane; the summaries as in
+    :class:`ReprojectionError`), ``on_vessel`` whether it lands on a vessel
+    pixel of the mask, ``view`` the index of the view it was projected into;
+    all concatenated over the views.
     """
 
-    px: np.ndarray
-    mm: np.ndarray
     on_vessel: np.ndarray
     view: np.ndarray
-
-    @property
-    def mean_px(self) -> float:
-        return float(self.px.mean())
-
-    @property
-    def sd_px(self) -> float:
-        return float(self.px.std())
-
-    @property
-    def max_px(self) -> float:
-        return float(self.px.max())
-
-    @property
-    def mean_mm(self) -> float:
-        return float(self.mm.mean())
-
-    @property
-    def sd_mm(self) -> float:
-        return float(self.mm.std())
-
-    @property
-    def max_mm(self) -> float:
-        return float(self.mm.max())
 
     @property
     def on_vessel_share(self) -> float:
@@ -236,9 +211,7 @@ class MaskReprojection:
         per_view = [{"mean_mm": float(self.mm[self.view == k].mean()),
                      "on_vessel": float(self.on_vessel[self.view == k].mean())}
                     for k in np.unique(self.view)]
-        return {"mean_px": self.mean_px, "sd_px": self.sd_px, "max_px": self.max_px,
-                "mean_mm": self.mean_mm, "sd_mm": self.sd_mm, "max_mm": self.max_mm,
-                "on_vessel": self.on_vessel_share, "views": per_view}
+        return {**super().to_dict(), "on_vessel": self.on_vessel_share, "views": per_view}
 
 
 def _curve_samples(curves: Any, step_mm: float) -> np.ndarray:
