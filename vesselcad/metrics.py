@@ -7,9 +7,9 @@
   curve to the ground-truth curve; coverage = share of the ground-truth length
   within 1 mm of the reconstruction.
 - Reprojection against independent vessel masks (:func:`mask_reprojection`):
-  the first measure with the 2D centrelines of masks the reconstruction never
-  saw (a person's tracing of the chosen frames), and the share of the
-  projected samples that land on the mask's vessel pixels.
+  the first measure, taken against the 2D centrelines of masks that the
+  reconstruction never saw (a person's tracing of the chosen frames), and the
+  share of the projected samples that land on the masks' vessel pixels.
 """
 
 from __future__ import annotations
