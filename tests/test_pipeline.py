@@ -705,3 +705,36 @@ def test_cli_keep_off_surface_reaches_reconstruct():
     for cmd in (["reconstruct", "a.dcm", "b.dcm", "--out", "o"], ["batch", "in", "--out", "o"]):
         assert parsed(cmd)["off_surface_sigmas"] == OFF_SURFACE_SIGMAS
         assert parsed([*cmd, "--keep-off-surface"])["off_surface_sigmas"] is None
+
+
+def test_cli_check_measures_a_written_tree_against_mask_files(tmp_path, capsys):
+    # A folder as `reconstruct` writes it: a 40 mm line along x through the isocentre (PA view:
+    # row 255.5), masks traced 0.5 px and 7.5 px off it (11-row bands centred on rows 255 and 263).
+    view = vc.CArmView(0.0, 0.0, 1100.0, 750.0, (0.3, 0.3), 512, 512)
+    line = np.c_[np.linspace(-20.0, 20.0, 81), np.zeros(81), np.zeros(81)]
+    vc.VesselTree([vc.TreeBranch(id=0, parent=None, points=line, radius=np.full(81, 1.0))]).to_json(
+        tmp_path / "centrelines.json")
+    (tmp_path / "report.json").write_text(json.dumps(
+        {"frame_a": 7, "frame_b": 9, "view_a": {"used": view.to_dict()}, "view_b": {"used": view.to_dict()}}))
+    near = np.zeros((512, 512), np.uint8)
+    near[250:261, 100:411] = 255
+    far = np.zeros((512, 512), bool)
+    far[258:269, 100:411] = True
+    cv2.imwrite(str(tmp_path / "a.png"), near)
+    np.save(tmp_path / "b.npy", far)
+    args = ["check", str(tmp_path), "--mask-a", str(tmp_path / "a.png"), "--mask-b", str(tmp_path / "b.npy")]
+    assert main([*args, "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["frames"] == [7, 9]
+    assert got["views"][0]["mean_mm"] == pytest.approx(0.5 * 0.3 * 750 / 1100, abs=1e-9)
+    assert got["views"][1]["mean_mm"] == pytest.approx(7.5 * 0.3 * 750 / 1100, abs=1e-6)
+    assert [v["on_vessel"] for v in got["views"]] == [1.0, 0.0] and got["on_vessel"] == 0.5
+    assert json.loads((tmp_path / "mask_check.json").read_text())["mean_px"] == pytest.approx(4.0)
+    # what a user gets wrong: a mask of another size, a missing mask, a folder without a report
+    cv2.imwrite(str(tmp_path / "small.png"), near[:300])
+    assert main([*args[:4], "--mask-b", str(tmp_path / "small.png")]) == 2
+    assert "--mask-b" in capsys.readouterr().err
+    assert main([*args[:4], "--mask-b", str(tmp_path / "none.png")]) == 2
+    assert "none.png: no such file" in capsys.readouterr().err
+    assert main(["check", str(tmp_path / "nowhere"), "--mask-a", "a", "--mask-b", "b"]) == 2
+    assert "no report.json" in capsys.readouterr().err

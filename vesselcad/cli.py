@@ -91,6 +91,66 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0 if rec.tree is not None else 3
 
 
+def _read_mask(path: str, name: str, shape: tuple[int, int]) -> np.ndarray:
+    """A vessel mask from an image file (grey > 127 is vessel) or a .npy array (non-zero)."""
+    import cv2
+
+    from .errors import InputFileError
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputFileError(f"{name} {p}: no such file")
+    if p.suffix.lower() == ".npy":
+        try:
+            mask = np.load(p, allow_pickle=False) != 0
+        except ValueError as exc:
+            raise InputFileError(f"{name} {p}: not a numpy array file ({exc})") from None
+    else:
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise InputFileError(f"{name} {p}: not an image file OpenCV can read")
+        mask = img > 127
+    if mask.shape != shape:
+        raise InputFileError(f"{name} {p}: shape {mask.shape}, but the chosen frame has {shape[0]} rows "
+                             f"and {shape[1]} columns")
+    return mask
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    from .errors import InputFileError
+    from .geometry import CArmView
+    from .io import atomic_write_text
+    from .metrics import mask_reprojection
+    from .tree import VesselTree
+
+    out = Path(args.dir)
+    try:
+        report = json.loads((out / "report.json").read_text(encoding="utf-8"))
+        views = [CArmView.from_dict(report[k]["used"], source=f"{out / 'report.json'} {k}")
+                 for k in ("view_a", "view_b")]
+    except FileNotFoundError:
+        raise InputFileError(f"{out}: no report.json (the folder `vesselcad reconstruct` wrote)") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputFileError(f"{out / 'report.json'}: not a vesselcad report ({exc})") from None
+    tree = VesselTree.from_json(out / "centrelines.json")
+    masks = [_read_mask(path, f"--mask-{k}", (v.rows, v.cols))
+             for k, path, v in zip("ab", (args.mask_a, args.mask_b), views, strict=True)]
+    m = mask_reprojection(tree, views, masks)
+    result = {"frames": [report.get("frame_a"), report.get("frame_b")],
+              "masks": [str(args.mask_a), str(args.mask_b)], **m.to_dict()}
+    atomic_write_text(out / "mask_check.json", json.dumps(result, indent=1) + "\n")
+    if args.json:
+        print(json.dumps(result))
+    elif not args.quiet:
+        print(f"tree reprojected into frames {result['frames'][0]} (A) and {result['frames'][1]} (B) against "
+              f"the masks: {m.mean_px:.2f} +- {m.sd_px:.2f} px ({m.mean_mm:.3f} +- {m.sd_mm:.3f} mm) from "
+              f"their centrelines, max {m.max_mm:.2f} mm; {m.on_vessel_share:.1%} of it on vessel")
+        for k, v in zip("AB", result["views"], strict=True):
+            print(f"  view {k}: {v['mean_mm']:.3f} mm, {v['on_vessel']:.1%} on vessel")
+        print(f"wrote {out / 'mask_check.json'}")
+    return 0
+
+
 def _cmd_batch(args: argparse.Namespace) -> int:
     from .batch import run_batch
 
@@ -359,6 +419,17 @@ def _parser() -> argparse.ArgumentParser:
                     help="segment with the bundled model (default) or use the phantom's true labels")
     recon_options(de, "--pair")
     de.set_defaults(func=_cmd_demo)
+
+    ck = sub.add_parser("check", help="measure a reconstruction against vessel masks of its two chosen "
+                                      "frames (traced by hand, say)")
+    ck.add_argument("dir", metavar="DIR", help="a folder `vesselcad reconstruct` wrote (report.json, "
+                                               "centrelines.json)")
+    ck.add_argument("--mask-a", required=True, metavar="FILE",
+                    help="vessel mask of run A's chosen frame: an image (grey > 127 = vessel) or .npy")
+    ck.add_argument("--mask-b", required=True, metavar="FILE", help="the same for run B's chosen frame")
+    ck.add_argument("--quiet", action="store_true")
+    ck.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    ck.set_defaults(func=_cmd_check)
 
     me = sub.add_parser("mesh", help="CFD mesh (gmsh) of a tree: labelled caps, flow extensions, "
                                      "boundary layers")
