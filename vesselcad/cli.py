@@ -103,7 +103,7 @@ def _read_mask(path: str, name: str, shape: tuple[int, int]) -> np.ndarray:
     if p.suffix.lower() == ".npy":
         try:
             mask = np.load(p, allow_pickle=False) != 0
-        except ValueError as exc:
+        except (ValueError, OSError, EOFError) as exc:
             raise InputFileError(f"{name} {p}: not a numpy array file ({exc})") from None
     else:
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
