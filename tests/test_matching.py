@@ -338,6 +338,39 @@ def test_surface_prior_off_leaves_no_surface(graphs):
         vc.match_graphs(VIEW_A, ga, VIEW_B, gb, surface_prior="yes")
 
 
+def test_a_continuation_that_ran_past_a_branch_point_in_one_view_anchors_both_at_it(graphs):
+    # An alignment that ends at a branch point of view A while view B ran on three samples into one
+    # of its branches there: the other branches must be reachable from an anchor that puts both
+    # views at their branch point (from the far end, view B could only go on along the branch it
+    # entered: the right vessel's second daughter was left unpaired that way).
+    from vesselcad import continuation as cont
+
+    ga, gb = graphs
+    cha, chb = cont.chains(ga), cont.chains(gb)
+    for view_a_first in (True, False):  # view B ran on; then the same with the views' roles swapped
+        ch1, ch2 = (cha, chb) if view_a_first else (chb, cha)
+        c1 = next(c for c in range(0, len(ch1.n), 2) if len(ch1.succ[c]) == 2)  # ends at a junction
+        c2 = 2 * (c1 // 2)  # the same vessel in the other view (the graphs number them alike)
+        assert ch2.succ[c2], "the other view's chain must end at a branch point too"
+        nxt = ch2.succ[c2][0]
+        n1, n2 = int(ch1.n[c1]), int(ch2.n[c2])
+        cells = max(n1 - 3, n2)
+        s1 = ch1.idx[c1, np.round(np.linspace(0, n1 - 4, cells)).astype(int)]
+        s2 = ch2.idx[c2, np.round(np.linspace(0, n2 - 1, cells)).astype(int)]
+        # the other view reaches its branch point three cells early and runs on into a branch, while
+        # this one walks its last three samples to its own
+        s1 = np.r_[s1, ch1.idx[c1, n1 - 3: n1]]
+        s2 = np.r_[s2, ch2.idx[nxt, 1:4]]
+        ia, ib = (s1, s2) if view_a_first else (s2, s1)
+        c = cont.Continuation(gain=1.0, cost=0.1, ia=ia, ib=ib, err=np.zeros(len(ia)))
+        anchors = cont._anchors_along(cha, chb, c)
+        both = (c1, n1 - 1, c2, n2 - 1) if view_a_first else (c2, n2 - 1, c1, n1 - 1)
+        assert both in anchors
+        # the far end is still an anchor of its own
+        far = cont._tip(cha, ia) + cont._tip(chb, ib)
+        assert far in anchors and far != both
+
+
 def test_a_seed_needs_one_partner_on_the_surface(graphs):
     # Seeds (continuation.seeds): the middle sample of an unpaired stretch of view A is paired with
     # the one unpaired sample of view B that agrees, unless another sample of view B farther than

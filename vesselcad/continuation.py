@@ -400,7 +400,21 @@ def _anchors_along(cha: Chains, chb: Chains, cont: Continuation) -> list[tuple[i
         near = ta[np.abs(ta - k) <= JOIN_CELLS]
         if not len(near):
             out.append(_tip(cha, cont.ia[: k + 1]) + _tip(chb, cont.ib[: k + 1]))
-    out.append(_tip(cha, cont.ia) + _tip(chb, cont.ib))
+    end_a, end_b = _tip(cha, cont.ia), _tip(chb, cont.ib)
+    out.append(end_a + end_b)
+    # One view ends at a branch point that the other passed within JOIN_CELLS cells of the end (it
+    # ran on a few samples into one of the branches there): the same bifurcation, so the other
+    # branches there continue from both views' branch points (from the far end, the view that ran
+    # on could only go on along the branch it entered).
+    last = len(cont.ia) - 1
+    if end_a[1] == cha.n[end_a[0]] - 1:
+        late = tb[last - tb <= JOIN_CELLS]
+        if len(late):
+            out.append(end_a + _tip(chb, cont.ib[: late[-1] + 1]))
+    if end_b[1] == chb.n[end_b[0]] - 1:
+        late = ta[last - ta <= JOIN_CELLS]
+        if len(late):
+            out.append(_tip(cha, cont.ia[: late[-1] + 1]) + end_b)
     return out
 
 
