@@ -26,6 +26,10 @@ with the phantom's 3D truth tree projected into both views:
   whose start is an ancestor of its end in the truth tree;
 - roots: share of views whose graph root lies within 3 px plus the radius of
   the projected ostium;
+- branch point offset: distance (px, median over both views) of each detected
+  branch point from the true bifurcation it stands for, in px and in local
+  vessel radii (thinning puts a junction where the vessels' pixels part, not
+  where their centrelines meet);
 - 3D off truth: every branch pair turned into a 3D curve by the geometric
   core (``vc.intersect_centrelines``, epipolar method; not timed), the share
   of that 3D length farther than 1.5 mm from the truth centreline: what a
@@ -167,6 +171,12 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
         visible = gap[ij[:, 1], ij[:, 0]] <= 2.0 + 0.5 * r_px
         a = associate(g.landmark_points, np.where(visible[:, None], tp, 1e9), 3.0 + r_px)
         assoc.append((a, visible))
+        # where the detected branch points lie against the true bifurcations they stand for
+        for k, lm in enumerate(g.landmarks):
+            if lm.kind == "branch" and a[k] >= 0 and tkind[a[k]] == "branch":
+                off = float(np.linalg.norm(lm.point_px - tp[a[k]]))
+                res.setdefault("branch_offset_px", []).append(off)
+                res.setdefault("branch_offset_radii", []).append(off / float(r_px[a[k]]))
         if g.root is not None:  # truth landmark 0 is the ostium
             roots_ok += bool(np.linalg.norm(g.landmarks[g.root].point_px - tp[0]) <= 3.0 + r_px[0])
     (aa, vis_a), (ab, vis_b) = assoc
@@ -250,6 +260,12 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
     return res
 
 
+def _median_of(rows: list[dict], key: str) -> float:
+    """Median of the per-case lists ``row[key]`` pooled (NaN when none)."""
+    vals = [v for r in rows for v in r.get(key, [])]
+    return float(np.median(vals)) if vals else float("nan")
+
+
 def summarize(rows: list[dict]) -> list[dict]:
     groups = {k: [r for r in rows if r["anatomy"] == k] for k in KINDS}
     groups["all"] = rows
@@ -274,6 +290,8 @@ def summarize(rows: list[dict]) -> list[dict]:
             "topology": sum(r["topology_ok"] for r in rs) / max(sum(r["topology_pairs"] for r in rs), 1),
             "trees": sum(r["tree"] for r in rs) / len(rs),
             "roots": sum(r.get("roots_ok", 0) for r in rs) / (2 * len(rs)),
+            "branch_offset_px": _median_of(rs, "branch_offset_px"),
+            "branch_offset_radii": _median_of(rs, "branch_offset_radii"),
             "off_3d": sum(r["pairs_3d_off_mm"] for r in rs)
             / max(sum(r["pairs_3d_off_mm"] + r["pairs_3d_on_mm"] for r in rs), 1e-9),
             "t_mean_s": float(t.mean()), "t_p95_s": float(np.percentile(t, 95)),
@@ -314,14 +332,16 @@ def main(argv: list[str] | None = None) -> int:
                              segmenter, args.tta))
     summ = summarize(rows)
     print("| anatomy | cases | precision | same-point precision | recall | detected | paired length "
-          "| topology | trees | roots | 3D off truth | s/case (mean, p95) | graph s | match s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| topology | trees | roots | branch point offset px (radii) | 3D off truth | s/case (mean, p95) "
+          "| graph s | match s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for s in summ:
         print(f"| {s['anatomy']} | {s['cases']} | {s['precision']:.3f} | {s['same_point']:.3f} "
               f"| {s['recall']:.3f} "
               f"| {s['detected']:.3f} "
               f"| {100 * s['paired_length']:.1f}% | {s['topology']:.3f} | {100 * s['trees']:.0f}% "
               f"| {100 * s['roots']:.0f}% "
+              f"| {s['branch_offset_px']:.2f} ({s['branch_offset_radii']:.2f}) "
               f"| {100 * s['off_3d']:.1f}% "
               f"| {s['t_mean_s']:.3f}, {s['t_p95_s']:.3f} | {s['t_graph_s']:.3f} | {s['t_match_s']:.3f} |")
     if args.json:
