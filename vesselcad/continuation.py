@@ -386,7 +386,9 @@ def _anchors_along(cha: Chains, chb: Chains, cont: Continuation) -> list[tuple[i
 
     Where both views pass a branch point within ``JOIN_CELLS`` cells of each
     other it is the same bifurcation: the anchor puts both views at it, so the
-    other branches there can be paired with each other.
+    other branches there can be paired with each other. So it does where the
+    continuation ends at a branch point of one view that the other view passed
+    within ``JOIN_CELLS`` cells of the end.
     """
     ka, kb = cha.branch[cont.ia], chb.branch[cont.ib]
     ta = np.flatnonzero(np.diff(ka) != 0)  # last cells before view A passes a branch point
