@@ -559,6 +559,59 @@ def test_branches_off_the_hearts_surface_are_left_out_but_not_near_the_ostium():
             reconstruct(ra, rb, labels=(la, lb), off_surface_sigmas=bad)
 
 
+def test_branch_ends_that_leave_the_hearts_surface_are_trimmed():
+    # A sphere of radius 60 mm fitted with a spread of 0.5 mm: the whole-branch limit is
+    # max(4 x 0.5, 1.5) = 2 mm (median), the ends' limit OFF_SURFACE_END_SIGMAS x max(0.5, 2) = 2 mm.
+    from vesselcad.pipeline import OFF_SURFACE_END_SIGMAS, _drop_off_surface
+    from vesselcad.surface import QuadricSurface
+
+    assert OFF_SURFACE_END_SIGMAS == 1.0
+    scale, radius = 30.0, 60.0
+    c = (scale / radius) ** 2
+    sphere = QuadricSurface(coefficients=np.array([c, c, c, 0, 0, 0, 0, 0, 0], float),
+                            centre=np.zeros(3), scale=scale, sigma_mm=0.5, inliers=1.0)
+    th = np.linspace(0.3, 0.9, 73)  # 36 mm of a meridian, samples 0.5 mm apart
+    rho = np.full(len(th), radius)
+    rho[-12:] = radius - np.linspace(0.5, 6.0, 12)  # its last 12 samples sink to 6 mm inside
+    rho[:3] = radius + 3.0                          # its first 3 samples 3 mm outside
+    pts = rho[:, None] * np.stack([np.sin(th), np.zeros(len(th)), np.cos(th)], axis=1)
+    # first-order distance of a point at distance rho from the centre: |rho^2 - R^2| / (2 rho)
+    d = np.abs(rho ** 2 - radius ** 2) / (2 * rho)
+    beyond = np.flatnonzero(d[-12:] > 2.0).min() + len(th) - 12  # first sample of the tail past 2 mm
+    ostium = np.array([0.0, 0.0, radius])
+    results = [_branch(0, pts)]
+    _drop_off_surface(results, sphere, ostium, 4.0, (VIEW_A, VIEW_B))
+    b = results[0]
+    assert b.ok
+    # the ostium lies 17.7 mm from the first sample (within 25 mm): the start is left alone
+    np.testing.assert_allclose(b.points_mm, pts[:beyond])
+    assert len(b.radius_mm) == beyond
+    assert len(b.warnings) == 1 and "its last" in b.warnings[0] and "trimmed" in b.warnings[0]
+    assert b.reprojection is not None and b.reprojection.max_px < 1e-6
+    # without the ostium both ends go
+    results = [_branch(0, pts)]
+    _drop_off_surface(results, sphere, None, 4.0, (VIEW_A, VIEW_B))
+    np.testing.assert_allclose(results[0].points_mm, pts[3:beyond])
+    gone = lambda q: np.linalg.norm(np.diff(q, axis=0), axis=1).sum()  # noqa: E731
+    assert results[0].warnings[0].startswith(f"its first {gone(pts[:4]):.1f} mm and its last "
+                                             f"{gone(pts[beyond - 1:]):.1f} mm trimmed")
+    # a wider spread (2.5 mm) widens the ends' limit to 2.5 mm; sigmas=None trims nothing
+    wide = QuadricSurface(coefficients=sphere.coefficients, centre=np.zeros(3), scale=scale, sigma_mm=2.5,
+                          inliers=1.0)
+    results = [_branch(0, pts)]
+    _drop_off_surface(results, wide, ostium, 4.0, (VIEW_A, VIEW_B))
+    np.testing.assert_allclose(results[0].points_mm, pts[:np.flatnonzero(d[-12:] > 2.5).min() + len(th) - 12])
+    results = [_branch(0, pts)]
+    _drop_off_surface(results, sphere, ostium, None, (VIEW_A, VIEW_B))
+    assert len(results[0].points_mm) == len(th) and results[0].warnings == []
+    # a branch that would keep less than OFF_SURFACE_END_KEEP_MM is not trimmed: the median rule
+    # judges it (here its median lies 4.1 mm inside: left out)
+    deep = (radius - 4.0) * np.stack([np.sin(th), np.zeros(len(th)), np.cos(th)], axis=1)
+    results = [_branch(0, deep)]
+    _drop_off_surface(results, sphere, None, 4.0, (VIEW_A, VIEW_B))
+    assert not results[0].ok and len(results[0].points_mm) == len(th)
+
+
 def test_depth_along_the_epipolar_lines_comes_from_the_hearts_surface():
     # A sphere of radius 60 mm around the isocentre as the heart's surface. A vessel on it that
     # lies in one epipolar plane projects onto one epipolar line in both views: the views say

@@ -373,9 +373,9 @@ def _parser() -> argparse.ArgumentParser:
                        help="which frames the model labels for the phase matching: all (default), or "
                        "coarse to fine, about three quarters of a 15 fps run (faster, for batches)")
         q.add_argument("--keep-off-surface", action="store_true",
-                       help="keep branches that lie off the heart's surface fitted to the tree (by "
-                       "default they are left out as wrong pairings; use it for vessels that do not "
-                       "run on one surface)")
+                       help="keep branches, and branch ends, that lie off the heart's surface fitted to "
+                       "the tree (by default they are left out as wrong pairings; use it for vessels "
+                       "that do not run on one surface)")
         q.add_argument("--no-refine", action="store_true", help="keep the files' geometry as it is")
         q.add_argument("--no-solid", action="store_true", help="centrelines only, no CAD solid")
         q.add_argument("--no-html", action="store_true", help="skip report.html")

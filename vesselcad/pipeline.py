@@ -92,6 +92,15 @@ JOINED_NOTE = "joined across"
 OFF_SURFACE_SIGMAS = 4.0
 OFF_SURFACE_MIN_MM = 1.5
 OFF_SURFACE_OSTIUM_MM = 25.0
+#: Of a branch kept by that rule, the samples at either end of its 3D centreline that lie farther
+#: from the surface than ``OFF_SURFACE_END_SIGMAS`` times the fit's spread (taken as at least
+#: ``matching.SURFACE_SIGMA_MIN_MM``, as the matching does) are trimmed: a pair that starts or ends
+#: on the wrong vessel (a one-ended pair run on past where its vessel ends in one view) leaves the
+#: surface there, while its median stays on it. Points within ``OFF_SURFACE_OSTIUM_MM`` of the
+#: ostium are never trimmed, nor a branch that would keep less than ``OFF_SURFACE_END_KEEP_MM``.
+#: None: no trimming.
+OFF_SURFACE_END_SIGMAS: float | None = 1.0
+OFF_SURFACE_END_KEEP_MM = 2.0
 #: Where a branch runs along the epipolar lines (its tangent within these angles, degrees, of
 #: them in either view) two views barely fix its depth, and the depth along view A's rays is
 #: taken from the heart's surface fitted by the matching instead: wholly below the first
@@ -589,11 +598,50 @@ def _ostium(match: GraphMatch, phase: PhaseMatch) -> np.ndarray | None:
 
 
 def _drop_off_surface(results: list[BranchResult], surface: Any, ostium: np.ndarray | None,
-                      sigmas: float | None) -> None:
-    """Leave out the branches that lie off the heart's surface (see :data:`OFF_SURFACE_SIGMAS`)."""
+                      sigmas: float | None, views: tuple[CArmView, CArmView] | None = None) -> None:
+    """Leave out the branches that lie off the heart's surface (see :data:`OFF_SURFACE_SIGMAS`),
+    then trim the ends of the others that leave it (see :data:`OFF_SURFACE_END_SIGMAS`)."""
     if surface is None or sigmas is None:
         return
     limit = max(float(sigmas) * float(surface.sigma_mm), OFF_SURFACE_MIN_MM)
+    _drop_whole_off_surface(results, surface, ostium, sigmas, limit)
+    if OFF_SURFACE_END_SIGMAS is not None and views is not None:
+        _trim_off_surface_ends(results, surface, ostium, views)
+
+
+def _trim_off_surface_ends(results: list[BranchResult], surface: Any, ostium: np.ndarray | None,
+                           views: tuple[CArmView, CArmView]) -> None:
+    """Trim the runs of samples at either end of each kept branch that lie off the heart's surface."""
+    from .matching import SURFACE_SIGMA_MIN_MM
+
+    limit = float(OFF_SURFACE_END_SIGMAS) * max(float(surface.sigma_mm), SURFACE_SIGMA_MIN_MM)
+    for b in results:
+        if not b.ok:
+            continue
+        pts = b.points_mm
+        d = np.nan_to_num(surface.distance(pts), nan=np.inf)
+        if ostium is not None:
+            d[np.linalg.norm(pts - ostium, axis=1) <= OFF_SURFACE_OSTIUM_MM] = 0.0
+        off = d > limit
+        lo = int(np.argmin(off)) if not off.all() else len(pts)
+        hi = len(pts) - int(np.argmin(off[::-1])) if not off.all() else len(pts)
+        if lo == 0 and hi == len(pts):
+            continue
+        if _length(pts[lo:hi]) < OFF_SURFACE_END_KEEP_MM:
+            continue  # (nearly) all of it off: the median rule above judges the whole branch
+        gone = [f"its first {_length(pts[:lo + 1]):.1f} mm"] if lo else []
+        gone += [f"its last {_length(pts[hi - 1:]):.1f} mm"] if hi < len(pts) else []
+        b.warnings.append(f"{' and '.join(gone)} trimmed: more than {limit:.1f} mm from the heart's surface "
+                          f"fitted to the tree's vessels (up to {float(d[off].max()):.1f} mm); most likely "
+                          "the pair runs on along another vessel there")
+        b.points_mm, b.radius_mm = pts[lo:hi], b.radius_mm[lo:hi]
+        b.reprojection = reprojection_error(b.points_mm, list(views),
+                                            [b.pair.points_a_px, b.pair.points_b_px])
+
+
+def _drop_whole_off_surface(results: list[BranchResult], surface: Any, ostium: np.ndarray | None,
+                            sigmas: float, limit: float) -> None:
+    """Leave out the branches whose median distance from the heart's surface exceeds ``limit``."""
     for b in results:
         if not b.ok:
             continue
@@ -1047,8 +1095,11 @@ def reconstruct(
         (``GraphMatch.surface``), and at least ``OFF_SURFACE_MIN_MM``, from that
         surface is left out with the status "off the heart's surface" (a
         pairing of two vessels that share epipolar lines); points within
-        ``OFF_SURFACE_OSTIUM_MM`` of the ostium do not count. Default 4; None
-        keeps every branch (vessels that do not run on one surface).
+        ``OFF_SURFACE_OSTIUM_MM`` of the ostium do not count. The ends of the
+        branches kept are trimmed where they lie farther from that surface
+        than ``OFF_SURFACE_END_SIGMAS`` times its spread (at least 2 mm).
+        Default 4; None keeps every branch whole (vessels that do not run on
+        one surface).
 
     Returns
     -------
@@ -1193,7 +1244,7 @@ def reconstruct(
             bar.update()
     if bar is not None:
         bar.close()
-    _drop_off_surface(results, match.surface, _ostium(match, phase), off_surface_sigmas)
+    _drop_off_surface(results, match.surface, _ostium(match, phase), off_surface_sigmas, views)
     # the depth from the surface moves points in view B: the parents are chosen before it
     _link_parents(results, views, adjust=lambda: _depth_from_surface(results, views, match.surface),
                   graphs=(ga, gb), roots=match.roots)
