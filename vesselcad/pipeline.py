@@ -623,10 +623,9 @@ def _trim_off_surface_ends(results: list[BranchResult], surface: Any, ostium: np
         if ostium is not None:
             d[np.linalg.norm(pts - ostium, axis=1) <= OFF_SURFACE_OSTIUM_MM] = 0.0
         off = d > limit
-        lo = int(np.argmin(off)) if not off.all() else len(pts)
-        hi = len(pts) - int(np.argmin(off[::-1])) if not off.all() else len(pts)
-        if lo == 0 and hi == len(pts):
+        if not (off[0] or off[-1]):
             continue
+        lo, hi = (0, 0) if off.all() else (int(np.argmin(off)), len(pts) - int(np.argmin(off[::-1])))
         if _length(pts[lo:hi]) < OFF_SURFACE_END_KEEP_MM:
             continue  # (nearly) all of it off: the median rule above judges the whole branch
         gone = [f"its first {_length(pts[:lo + 1]):.1f} mm"] if lo else []
