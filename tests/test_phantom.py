@@ -251,3 +251,50 @@ def test_truth_comparison_measures_distances_to_the_curves_not_to_their_samples(
         SimpleNamespace(ok=True, points_mm=b.points_mm + [0.0, 0.0, 3.0]) for b in rec.branches]})
     off = compare_with_truth(moved, case)
     assert off["max_mm"] <= 3.0 + 1e-9 and off["mean_mm"] > 1.0
+
+
+def test_error_anatomy_splits_the_error_and_the_missed_length_as_drawn():
+    from types import SimpleNamespace
+
+    from vesselcad.phantom.compare import error_anatomy
+
+    def line(a, b, step=0.5):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        n = int(round(np.linalg.norm(b - a) / step)) + 1
+        return a + np.linspace(0.0, 1.0, n)[:, None] * (b - a)
+
+    # Four true vessels, far apart but for the trunk and its child, which meet at (50, 0, 0).
+    truth = [line([0, 0, 0], [100, 0, 0]),       # trunk, 100 mm
+             line([50, 0, 0], [50, 60, 0]),      # its child, 60 mm
+             line([0, -50, 0], [0, -50, 40]),    # 40 mm, paired wrongly only
+             line([0, 100, 0], [60, 100, 0])]    # 60 mm, found from 30 mm on
+    case = SimpleNamespace(run_a=SimpleNamespace(trees=[{"branches": [{"points": t} for t in truth]}]))
+    recon = [line([0, 0, 0], [20.2, 0, 0]), line([40.2, 0, 0], [100, 0, 0]),   # a 20 mm gap
+             line([50, 0, 0], [50, 30, 0]),                                    # stops half-way
+             line([10, -50, 0], [10, -50, 40]),                               # 10 mm off its vessel
+             line([30, 100, 0], [60, 100, 0])]                                # starts 30 mm late
+    rec = SimpleNamespace(phase=SimpleNamespace(frame_a=0),
+                          branches=[SimpleNamespace(ok=True, points_mm=p) for p in recon])
+    got = error_anatomy(rec, case)
+    # Samples every 0.5 mm along each reconstructed branch, its end included.
+    n = [int(np.ceil(length / 0.5)) + 1 for length in (20.2, 59.8, 30, 40, 30)]
+    # The off branch: 10 mm from the truth at every sample, the others on it.
+    assert got["off_samples"] == pytest.approx(n[3] / sum(n), abs=1e-4)
+    assert got["off_error"] == pytest.approx(1.0)
+    assert got["mean_mm_without_off"] == pytest.approx(0.0, abs=1e-6)
+    # Missed (farther than 5 mm from every reconstructed branch), as shares of the true length:
+    # inside the gap 20.2-40.2 mm its middle 10 mm, the child's last 25 mm, the wrongly paired
+    # vessel whole (40 mm), the late one's first 25 mm.
+    total = 100 + 60 + 40 + 60
+    tol = 2 * 0.5 / total  # a sample at each end of a run
+    assert got["missed_inside"] == pytest.approx(10 / total, abs=tol)
+    assert got["missed_distal"] == pytest.approx(25 / total, abs=tol)
+    assert got["missed_whole"] == pytest.approx(40 / total, abs=tol)
+    assert got["missed_proximal"] == pytest.approx(25 / total, abs=tol)
+    assert got["missed"] == pytest.approx(100 / total, abs=4 * tol)
+    # Nothing reconstructed: all of it missed, as whole branches.
+    none = error_anatomy(SimpleNamespace(phase=rec.phase, branches=[]), case)
+    assert none["missed"] == none["missed_whole"] == 1.0
+    for bad in ({"off_mm": 0}, {"missed_mm": float("nan")}, {"step_mm": True}):
+        with pytest.raises(vc.ArgumentError, match=next(iter(bad))):
+            error_anatomy(rec, case, **bad)

@@ -11,7 +11,7 @@ from ..errors import ArgumentError
 from ..metrics import distance_to_polyline
 from ..splines import resample_by_arclength
 
-__all__ = ["compare_with_truth"]
+__all__ = ["compare_with_truth", "error_anatomy"]
 
 
 def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: float = 0.5) -> dict[str, Any]:
@@ -61,6 +61,84 @@ def compare_with_truth(rec: Any, case: Any, within_mm: float = 1.0, step_mm: flo
     cov = np.min([distance_to_polyline(tpts, b.points_mm) for b in ok], axis=0)
     return {**out, "mean_mm": round(float(err.mean()), 4), "p95_mm": round(float(np.percentile(err, 95)), 4),
             "max_mm": round(float(err.max()), 4), "coverage": round(float(np.mean(cov <= within_mm)), 4)}
+
+
+def error_anatomy(rec: Any, case: Any, off_mm: float = 3.0, missed_mm: float = 5.0,
+                  step_mm: float = 0.5) -> dict[str, float]:
+    """Where a reconstruction's 3D error and its missing length lie, against the phantom's truth.
+
+    The truth is that of :func:`compare_with_truth` (run A's tree at the chosen
+    frame of run A). Two questions the mean error and the coverage do not
+    answer:
+
+    - how much of the error sits on branches that are *off* the truth, whose
+      median distance to it exceeds ``off_mm`` (two different vessels paired,
+      as a rule), and what the mean would be without them;
+    - where the true length lies that no reconstructed branch comes within
+      ``missed_mm`` of (not merely inaccurate but *missed*): each true
+      branch's missed runs are counted as ``distal`` (running to the
+      branch's end: a pair that stopped short), ``proximal`` (from its start),
+      ``inside`` (neither end: a gap) or ``whole`` (the entire branch).
+
+    Parameters
+    ----------
+    rec : Reconstruction
+        Needs ``phase.frame_a`` and ``branches`` (``ok``, ``points_mm``).
+    case : PhantomCase
+    off_mm : float
+        Median distance to the truth above which a branch counts as off.
+    missed_mm : float
+        Distance from every reconstructed branch above which a true sample counts as missed.
+    step_mm : float
+        Sampling step along both the reconstruction and the truth.
+
+    Returns
+    -------
+    dict
+        ``off_samples`` and ``off_error``: the off branches' share of the
+        reconstructed samples and of their summed error; ``mean_mm_without_off``
+        (NaN when every branch is off); ``missed``: share of the true length
+        missed, and ``missed_distal``, ``missed_proximal``, ``missed_inside``,
+        ``missed_whole``: its parts as shares of the whole true length. With no
+        reconstructed branch, everything is missed (``missed_whole`` = 1).
+    """
+    for name, v in (("off_mm", off_mm), ("missed_mm", missed_mm), ("step_mm", step_mm)):
+        if isinstance(v, bool) or not isinstance(v, int | float) or not (np.isfinite(v) and v > 0):
+            raise ArgumentError(f"error_anatomy: {name} must be a number > 0, got {v!r}")
+    truth = [np.asarray(b["points"], float) for b in case.run_a.trees[rec.phase.frame_a]["branches"]]
+    truth = [t for t in truth if len(t) > 1]
+    samples = [resample_by_arclength(t, step_mm) for t in truth]
+    total = sum(len(s) for s in samples)
+    ok = [b.points_mm for b in rec.branches if b.ok and b.points_mm is not None and len(b.points_mm) > 1]
+    out = {"off_samples": 0.0, "off_error": 0.0, "mean_mm_without_off": float("nan")}
+    if not ok:
+        return {**out, "missed": 1.0, "missed_distal": 0.0, "missed_proximal": 0.0, "missed_inside": 0.0,
+                "missed_whole": 1.0}
+    # error of every reconstructed sample, per branch
+    errs = [np.min([distance_to_polyline(resample_by_arclength(p, step_mm), t) for t in truth], axis=0)
+            for p in ok]
+    off = np.array([np.median(e) > off_mm for e in errs])
+    n = np.array([len(e) for e in errs], float)
+    s = np.array([e.sum() for e in errs])
+    out["off_samples"] = round(float(n[off].sum() / n.sum()), 4)
+    out["off_error"] = round(float(s[off].sum() / max(s.sum(), 1e-12)), 4)
+    if (~off).any():
+        out["mean_mm_without_off"] = round(float(s[~off].sum() / n[~off].sum()), 4)
+    parts = {"distal": 0, "proximal": 0, "inside": 0, "whole": 0}
+    for q in samples:
+        far = np.min([distance_to_polyline(q, p) for p in ok], axis=0) > missed_mm
+        if far.all():
+            parts["whole"] += len(q)
+            continue
+        # runs of missed samples: starts and ends of the True stretches
+        edge = np.diff(np.r_[0, far.astype(np.int8), 0])
+        starts, ends = np.flatnonzero(edge == 1), np.flatnonzero(edge == -1)
+        for a, b in zip(starts, ends, strict=True):
+            key = "proximal" if a == 0 else "distal" if b == len(q) else "inside"
+            parts[key] += int(b - a)
+    out.update({f"missed_{k}": round(v / total, 4) for k, v in parts.items()})
+    out["missed"] = round(sum(parts.values()) / total, 4)
+    return out
 
 
 def visible_share(case: Any, frame_a: int, frame_b: int, max_gap_px: float = 1.5) -> float:
