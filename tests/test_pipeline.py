@@ -481,6 +481,41 @@ def test_a_branch_whose_first_mm_were_not_paired_is_joined_where_both_skeletons_
     assert [b.parent for b in results] == [None, 0, None]
 
 
+def test_a_gap_beyond_the_moving_reach_is_bridged_along_both_skeletons(monkeypatch):
+    # The child of the test above, its first 15 mm not paired: beyond MAX_JOIN_GAP_MM, so its
+    # start is not moved. Both skeletons run from it to the fork F without a detour, and the
+    # gap is bridged: a new stretch from the parent to the child's start that follows the
+    # drawn child in both images, the paired part left as it was.
+    import vesselcad.pipeline as pipeline
+
+    s = np.linspace(0.0, 1.0, 121)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
+    child = s * [0.0, 25.0, 15.0]                                   # from F = (0, 0, 0)
+    seen = child[np.linalg.norm(child, axis=1) >= 15.0]
+    graphs = _drawn_graphs((parent, 1.5), (child, 1.0))
+    results = [_branch(0, parent), _branch(1, seen)]
+    pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
+    b = results[1]
+    assert b.parent == 0
+    np.testing.assert_array_equal(b.points_mm[-len(seen):], seen)    # the paired part as it was
+    bridge = b.points_mm[:-len(seen)]
+    assert 14.0 / 0.5 <= len(bridge) <= 16.0 / 0.5 + 1               # samples every 0.5 mm
+    assert np.linalg.norm(bridge[0]) < 1.0                            # leaves the parent at F
+    assert distance_to_polyline(bridge, child).max() < 1.0            # along the true child
+    assert distance_to_polyline(bridge, child).mean() < 0.3
+    assert np.all(np.linalg.norm(np.diff(b.points_mm, axis=0), axis=1) < 0.6)
+    assert "the gap bridged" in b.warnings[-1] and b.warnings[-1].startswith("joined across 15.")
+    # its 2D pieces now start at the fork too, and the whole branch reprojects onto them
+    for view, piece in ((VIEW_A, b.pair.points_a_px), (VIEW_B, b.pair.points_b_px)):
+        assert np.linalg.norm(piece[0] - view.project(np.zeros((1, 3)))[0]) < 3.0
+    assert b.reprojection.mean_px < 0.5 and b.reprojection.max_px < 2.0
+    # without bridges the join reaches MAX_JOIN_GAP_MM only: the child stays apart
+    monkeypatch.setattr(pipeline, "MAX_BRIDGE_MM", None)
+    results = [_branch(0, parent), _branch(1, seen)]
+    pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
+    assert results[1].parent is None
+
+
 def test_joins_along_the_skeletons_can_be_switched_off(monkeypatch):
     import vesselcad.pipeline as pipeline
 

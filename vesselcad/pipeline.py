@@ -15,7 +15,7 @@ import os
 import time
 import warnings as _warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +81,13 @@ ON_VESSEL_MAX_ANGLE_DEG = 120.0
 #: None: not at all.
 SKELETON_DETOUR: float | None = 1.3
 SKELETON_DETOUR_PX = 5.0
+#: Such a join reaches this far (mm) in 3D. A gap up to ``MAX_JOIN_GAP_MM`` closes by moving the
+#: branch's start, as for the other links; a wider one is bridged: a new stretch of centreline
+#: from where the parent's skeleton forks to the branch's start that follows the two skeleton
+#: paths between them (``_bridge``), the branch's own points left where they are (a moved start
+#: would bend up to half the branch). None: no bridges, joins up to ``MAX_JOIN_GAP_MM`` only.
+#: docs/results.md (issue 13, 2026-12-05): 20 mm against 30 (worse 3D error) and moving instead.
+MAX_BRIDGE_MM: float | None = 20.0
 #: How the warning of a branch joined that way begins (the report's overlay marks its start).
 JOINED_NOTE = "joined across"
 #: A 3D branch whose points lie, by their median, farther from the heart's surface fitted by the
@@ -540,6 +547,7 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         return x
 
     links: dict[int, tuple[int, int, str]] = {}
+    walks: dict[tuple[int, int], Any] = {}
 
     def accept(candidates: list[tuple[float, int, int, int, str]]) -> None:
         for _cost, c, p, i, why in sorted(candidates):
@@ -558,7 +566,7 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         if graphs is not None and SKELETON_DETOUR is not None:
             known = roots is not None and None not in roots
             ostium = {b.id for b in ok if known and b.pair.start == tuple(roots)}
-            accept(_joins_along_skeletons(ok, views, graphs, set(links) | ostium, find))
+            accept(_joins_along_skeletons(ok, views, graphs, set(links) | ostium, find, walks))
     if adjust is not None:
         adjust()
     def depth(c: int) -> int:
@@ -569,7 +577,11 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         child, par = by_id[c], by_id[p]
         target = par.points_mm[i]
         gap = float(np.linalg.norm(child.points_mm[0] - target))
-        if par.radius_mm[i] < gap <= MAX_JOIN_GAP_MM:
+        if (c, p) in walks and MAX_BRIDGE_MM is not None and gap > max(MAX_JOIN_GAP_MM, par.radius_mm[i]):
+            target, paths = _departure(par, views, walks[(c, p)])
+            _bridge(child, target, views, paths)
+            child.warnings.append(f"{why}the gap bridged along them ({gap:.1f} mm)")
+        elif par.radius_mm[i] < gap <= MAX_JOIN_GAP_MM:
             moved = _moved_start(child.points_mm, target)
             if views is not None and ON_VESSEL_ROUNDS:
                 back = _back_on_vessels(moved, child.points_mm, views,
@@ -749,17 +761,21 @@ def _joins_in_both_views(ok: list[BranchResult], views: tuple[CArmView, CArmView
 
 def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmView],
                            graphs: tuple[CentrelineGraph, CentrelineGraph], linked: set[int],
-                           tree_of: Callable[[int], int]) -> list[tuple[float, int, int, int, str]]:
+                           tree_of: Callable[[int], int],
+                           paths: dict[tuple[int, int], Any] | None = None
+                           ) -> list[tuple[float, int, int, int, str]]:
     """Candidate links across a stretch the matching left unpaired: (gap mm, child, parent,
-    index of the parent's point, note).
+    index of the parent's point, note); ``paths``, if given, receives each candidate's two
+    skeleton paths (px, from the parent's point to the child's start, each with a flag per
+    sample: a skeleton pixel where branches meet) under (child, parent).
 
     For each branch without a parent (not in ``linked``: those linked already, and the
     one starting at the ostium, which stays its tree's root), the nearest 3D point of
-    every branch of another tree (``tree_of``) within :data:`MAX_JOIN_GAP_MM` of its
-    start, not within the first radius of that branch (two daughters of a parent that
-    was not reconstructed start near each other). It is a candidate when in each view
-    the skeleton passes within :data:`JOIN_PX` of both projections and runs between
-    them no longer than :data:`SKELETON_DETOUR` times the straight line plus
+    every branch of another tree (``tree_of``) within :data:`MAX_BRIDGE_MM` (at least
+    :data:`MAX_JOIN_GAP_MM`) of its start, not within the first radius of that branch
+    (two daughters of a parent that was not reconstructed start near each other). It is a
+    candidate when in each view the skeleton passes within :data:`JOIN_PX` of both
+    projections and runs between them no longer than :data:`SKELETON_DETOUR` times the straight line plus
     :data:`SKELETON_DETOUR_PX`: the two pieces are one vessel in both images, not two
     vessels that pass close in 3D (those join in the images, if at all, by a detour
     through other vessels).
@@ -769,6 +785,7 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
 
     from .centreline2d import _pixel_graph
 
+    reach = MAX_JOIN_GAP_MM if MAX_BRIDGE_MM is None else max(MAX_BRIDGE_MM, MAX_JOIN_GAP_MM)
     cands = []
     for c in ok:
         if c.id in linked:
@@ -779,7 +796,7 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
                 continue
             d = np.linalg.norm(p.points_mm - start, axis=1)
             i = int(np.argmin(d))
-            if d[i] <= MAX_JOIN_GAP_MM and _length(p.points_mm[:i + 1]) > p.radius_mm[0]:
+            if d[i] <= reach and _length(p.points_mm[:i + 1]) > p.radius_mm[0]:
                 cands.append((float(d[i]), c, p, i))
     if not cands:
         return []
@@ -795,7 +812,7 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
         nets.append((cKDTree(xy), sparse.csr_matrix((steps, (coo.row, coo.col)), shape=adj.shape)))
     joins = []
     for gap, c, p, i in cands:
-        detours = []
+        detours, walks = [], []
         for k, (view, pts2d) in enumerate(zip(views, (c.pair.points_a_px, c.pair.points_b_px), strict=True)):
             if nets[k] is None:
                 break
@@ -806,15 +823,126 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
             limit = SKELETON_DETOUR * straight + SKELETON_DETOUR_PX
             if max(d0, d1) > JOIN_PX:
                 break
-            run = float(csgraph.dijkstra(net, indices=int(j0), limit=limit + 1.0)[int(j1)])
+            dist, pred = csgraph.dijkstra(net, indices=int(j1), limit=limit + 1.0, return_predecessors=True)
+            run = float(dist[int(j0)])
             if not run <= limit:
                 break
             detours.append(run)
+            # the skeleton's path from the parent's point to the branch's start
+            path = [int(j0)]
+            while path[-1] != int(j1):
+                path.append(int(pred[path[-1]]))
+            path = np.asarray(path[::-1])
+            fork = np.diff(net.indptr)[path] >= 3  # skeleton pixels where branches meet
+            walks.append((np.vstack([q, kd.data[path], pts2d[0]]), np.r_[False, fork, False]))
         else:
             note = (f"{JOINED_NOTE} {gap:.1f} mm to branch {p.id}, where both views' skeletons run "
                     f"between the two ({detours[0]:.0f} and {detours[1]:.0f} px): ")
             joins.append((gap, c.id, p.id, i, note))
+            if paths is not None:
+                paths[(c.id, p.id)] = (walks[0], walks[1])
     return joins
+
+
+def _departure(parent: BranchResult, views: tuple[CArmView, CArmView],
+               walks: Any) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Where a bridge leaves its parent, and the skeleton paths from there.
+
+    Each view's skeleton path (``walks``: samples in px from the projection of the
+    parent's point nearest the child's start, and a flag per sample for skeleton pixels
+    where branches meet) may first run along the parent's own 2D piece before it turns
+    into the gap. In each view the path leaves the parent at the last fork pixel of its
+    first run of samples on the parent's piece (within :data:`JOIN_PX`), or at that run's
+    end where it has none (a child leaving at an acute angle stays within a few pixels
+    of its parent for a while: the fork is where the skeletons part). The bridge leaves
+    the parent at its 3D point whose projections lie nearest the two departures, and
+    each path is cut to start there.
+    """
+    proj, keep = [], []
+    for view, (walk, fork), piece in zip(views, walks, (parent.pair.points_a_px, parent.pair.points_b_px),
+                                         strict=True):
+        on = distance_to_polyline(walk, np.asarray(piece, float)) <= JOIN_PX
+        k = len(walk) - 2 if on[:-1].all() else max(int(np.argmin(on)) - 1, 0)
+        forks = np.flatnonzero(fork[: k + 1])
+        if len(forks):
+            k = int(forks[-1])
+        proj.append(view.project(parent.points_mm))
+        keep.append((walk[k], walk[k + 1:]))
+    cost = sum(np.sum((pr - q) ** 2, axis=1) for pr, (q, _) in zip(proj, keep, strict=True))
+    j = int(np.argmin(cost))
+    paths = tuple(np.vstack([pr[j], rest]) for pr, (_, rest) in zip(proj, keep, strict=True))
+    return parent.points_mm[j], (paths[0], paths[1])
+
+
+def _bridge(child: BranchResult, target: np.ndarray, views: tuple[CArmView, CArmView],
+            walks: tuple[np.ndarray, np.ndarray]) -> None:
+    """Prepend to ``child`` a stretch of centreline from ``target`` (on its parent) to its start.
+
+    A join across a stretch the matching left unpaired, where both views' skeletons
+    run between the two (``walks``: each view's skeleton path in px, from the
+    target's projection to the child's start). The stretch starts as a cubic Hermite
+    curve (leaving ``target`` along the chord, arriving along the child's first
+    direction), sampled every 0.5 mm, and is brought onto the two skeleton paths by the
+    damped Gauss-Newton steps of :func:`_back_on_vessels` (the depth stays as the curve
+    put it where the two views do not decide it), then sampled every 0.5 mm again. Its
+    radius is the child's first one.
+    The child's pair gets the two paths ahead of its pieces, so that its reprojection
+    is measured against what both images show there.
+    """
+    pts = child.points_mm
+    p0, p1 = np.asarray(target, float), pts[0]
+    chord = p1 - p0
+    length = float(np.linalg.norm(chord))
+    ahead = pts[min(4, len(pts) - 1)] - pts[0]
+    t1 = ahead / max(float(np.linalg.norm(ahead)), 1e-9) * length
+    u = np.linspace(0.0, 1.0, max(int(np.ceil(length / 0.5)), 2) + 1)[:, None]
+    h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+    curve = h00 * p0 + h10 * chord + h01 * p1 + h11 * t1
+    ends = np.zeros(len(curve), bool)
+    ends[[0, -1]] = True
+    curve = _onto_paths(curve, ~ends, views, walks)
+    curve = resample_by_arclength(curve, 0.5)  # the steps leave the samples unevenly spaced
+    child.points_mm = np.vstack([curve[:-1], pts])
+    child.radius_mm = np.r_[np.full(len(curve) - 1, child.radius_mm[0]), child.radius_mm]
+    pair = child.pair
+    ra, rb = np.asarray(pair.radius_a_px, float), np.asarray(pair.radius_b_px, float)
+    child.pair = replace(
+        pair, points_a_px=np.vstack([walks[0][:-1], pair.points_a_px]),
+        points_b_px=np.vstack([walks[1][:-1], pair.points_b_px]),
+        radius_a_px=np.r_[np.full(len(walks[0]) - 1, ra[0]), ra],
+        radius_b_px=np.r_[np.full(len(walks[1]) - 1, rb[0]), rb])
+    child.reprojection = reprojection_error(child.points_mm, list(views),
+                                            [child.pair.points_a_px, child.pair.points_b_px])
+
+
+def _onto_paths(points: np.ndarray, free: np.ndarray, views: tuple[CArmView, CArmView],
+                paths: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """``points`` whose ``free`` ones take ``ON_VESSEL_ROUNDS`` damped Gauss-Newton steps
+    towards the 3D point whose projections are the nearest points of the 2D ``paths``
+    (px, one per view), the steps smoothed along the curve (as :func:`_back_on_vessels`)."""
+    x = points[free].copy()
+    if not len(x):
+        return points
+    lines = []
+    for path in paths:
+        dense = resample_by_arclength(np.asarray(path, float), 0.25)
+        lines.append((dense, cKDTree(dense)))
+    eps = 1e-3
+    for _ in range(ON_VESSEL_ROUNDS):
+        rows, res = [], []
+        for view, (dense, tree) in zip(views, lines, strict=True):
+            proj = view.project(x)
+            _, k = tree.query(proj)
+            res.append(dense[k] - proj)
+            rows.append(np.stack([(view.project(x + eps * e) - proj) / eps for e in np.eye(3)], axis=2))
+        jac = np.concatenate(rows, axis=1)  # (n, 4, 3): px per mm
+        r = np.concatenate(res, axis=1)  # (n, 4) px
+        a = np.einsum("nij,nik->njk", jac, jac) + ON_VESSEL_DAMPING * np.eye(3)
+        step = np.linalg.solve(a, np.einsum("nij,ni->nj", jac, r)[..., None])[..., 0]
+        x += ndimage.uniform_filter1d(step, size=min(5, len(step)), axis=0, mode="nearest")
+    out = points.copy()
+    out[free] = x
+    return out
 
 
 def _back_on_vessels(moved: np.ndarray, original: np.ndarray, views: tuple[CArmView, CArmView],
