@@ -516,6 +516,30 @@ def test_a_gap_beyond_the_moving_reach_is_bridged_along_both_skeletons(monkeypat
     assert results[1].parent is None
 
 
+def test_a_bridge_whose_two_paths_are_not_one_vessel_is_not_built():
+    # The same gap, but view B's path runs through a point 12 mm off the child (another vessel,
+    # as where a skeleton path turns at a crossing): no 3D curve lies on both paths, the
+    # bridge stays ~1.8 px off B's (0.25 px off A's), and the branch is left as it was.
+    import vesselcad.pipeline as pipeline
+
+    s = np.linspace(0.0, 1.0, 121)[:, None]
+    child = s * [0.0, 25.0, 15.0]
+    seen, gap = child[np.linalg.norm(child, axis=1) >= 15.0], child[np.linalg.norm(child, axis=1) <= 15.0]
+    mid = gap[len(gap) // 2] + [12.0, 0.0, 0.0]
+    u = np.linspace(0.0, 1.0, 30)[:, None]
+    other = np.vstack([u * mid, mid + u * (gap[-1] - mid)])
+    b = _branch(1, seen)
+    before, pieces = b.points_mm.copy(), b.pair.points_a_px.copy()
+    off = pipeline._bridge(b, np.zeros(3), (VIEW_A, VIEW_B), (VIEW_A.project(gap), VIEW_B.project(other)))
+    assert off is not None and off[1] > pipeline.BRIDGE_MAX_PX > off[0]
+    np.testing.assert_array_equal(b.points_mm, before)
+    np.testing.assert_array_equal(b.pair.points_a_px, pieces)
+    # the true path in both views: bridged
+    true_paths = (VIEW_A.project(gap), VIEW_B.project(gap))
+    assert pipeline._bridge(b, np.zeros(3), (VIEW_A, VIEW_B), true_paths) is None
+    assert distance_to_polyline(b.points_mm[:-len(seen)], child).max() < 0.5
+
+
 def test_joins_along_the_skeletons_can_be_switched_off(monkeypatch):
     import vesselcad.pipeline as pipeline
 

@@ -88,6 +88,10 @@ SKELETON_DETOUR_PX = 5.0
 #: would bend up to half the branch). None: no bridges, joins up to ``MAX_JOIN_GAP_MM`` only.
 #: docs/results.md (issue 13, 2026-12-05): 20 mm against 30 (worse 3D error) and moving instead.
 MAX_BRIDGE_MM: float | None = 20.0
+#: ... unless the bridge, brought onto the two paths, stays farther than this (px, mean) from
+#: either: the paths are then not one vessel (one turns onto another vessel at a crossing),
+#: and the branch stays apart.
+BRIDGE_MAX_PX = 1.0
 #: How the warning of a branch joined that way begins (the report's overlay marks its start).
 JOINED_NOTE = "joined across"
 #: A 3D branch whose points lie, by their median, farther from the heart's surface fitted by the
@@ -579,8 +583,14 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         gap = float(np.linalg.norm(child.points_mm[0] - target))
         if (c, p) in walks and MAX_BRIDGE_MM is not None and gap > max(MAX_JOIN_GAP_MM, par.radius_mm[i]):
             target, paths = _departure(par, views, walks[(c, p)])
-            _bridge(child, target, views, paths)
-            child.warnings.append(f"{why}the gap bridged along them ({gap:.1f} mm)")
+            off = _bridge(child, target, views, paths)
+            if off is None:
+                child.warnings.append(f"{why}the gap bridged along them ({gap:.1f} mm)")
+            else:
+                child.parent = None
+                child.warnings.append(f"not {why[:-2]}: no single 3D curve follows both paths (the "
+                                      f"best stays {off[0]:.1f} and {off[1]:.1f} px off them, mean), so "
+                                      "the gap was not bridged")
         elif par.radius_mm[i] < gap <= MAX_JOIN_GAP_MM:
             moved = _moved_start(child.points_mm, target)
             if views is not None and ON_VESSEL_ROUNDS:
@@ -875,8 +885,13 @@ def _departure(parent: BranchResult, views: tuple[CArmView, CArmView],
 
 
 def _bridge(child: BranchResult, target: np.ndarray, views: tuple[CArmView, CArmView],
-            walks: tuple[np.ndarray, np.ndarray]) -> None:
+            walks: tuple[np.ndarray, np.ndarray]) -> tuple[float, float] | None:
     """Prepend to ``child`` a stretch of centreline from ``target`` (on its parent) to its start.
+
+    Returns None when it did; where the stretch stays more than :data:`BRIDGE_MAX_PX`
+    (mean) off either path (the two paths are not one vessel: one of them turns onto
+    another vessel at a crossing), ``child`` is left as it was and the two mean
+    distances (px) are returned.
 
     A join across a stretch the matching left unpaired, where both views' skeletons
     run between the two (``walks``: each view's skeleton path in px, from the
@@ -901,6 +916,10 @@ def _bridge(child: BranchResult, target: np.ndarray, views: tuple[CArmView, CArm
     ends = np.zeros(len(curve), bool)
     ends[[0, -1]] = True
     curve = _onto_paths(curve, ~ends, views, walks)
+    off = [float(np.mean(distance_to_polyline(view.project(curve[1:-1]), np.asarray(walk, float))))
+           for view, walk in zip(views, walks, strict=True)]
+    if max(off) > BRIDGE_MAX_PX:
+        return off[0], off[1]
     curve = resample_by_arclength(curve, 0.5)  # the steps leave the samples unevenly spaced
     child.points_mm = np.vstack([curve[:-1], pts])
     child.radius_mm = np.r_[np.full(len(curve) - 1, child.radius_mm[0]), child.radius_mm]
@@ -913,6 +932,7 @@ def _bridge(child: BranchResult, target: np.ndarray, views: tuple[CArmView, CArm
         radius_b_px=np.r_[np.full(len(walks[1]) - 1, rb[0]), rb])
     child.reprojection = reprojection_error(child.points_mm, list(views),
                                             [child.pair.points_a_px, child.pair.points_b_px])
+    return None
 
 
 def _onto_paths(points: np.ndarray, free: np.ndarray, views: tuple[CArmView, CArmView],
