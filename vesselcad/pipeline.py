@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import time
 import warnings as _warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -888,21 +888,20 @@ def _bridge(child: BranchResult, target: np.ndarray, views: tuple[CArmView, CArm
             walks: tuple[np.ndarray, np.ndarray]) -> tuple[float, float] | None:
     """Prepend to ``child`` a stretch of centreline from ``target`` (on its parent) to its start.
 
-    Returns None when it did; where the stretch stays more than :data:`BRIDGE_MAX_PX`
-    (mean) off either path (the two paths are not one vessel: one of them turns onto
-    another vessel at a crossing), ``child`` is left as it was and the two mean
-    distances (px) are returned.
-
     A join across a stretch the matching left unpaired, where both views' skeletons
     run between the two (``walks``: each view's skeleton path in px, from the
     target's projection to the child's start). The stretch starts as a cubic Hermite
     curve (leaving ``target`` along the chord, arriving along the child's first
     direction), sampled every 0.5 mm, and is brought onto the two skeleton paths by the
-    damped Gauss-Newton steps of :func:`_back_on_vessels` (the depth stays as the curve
-    put it where the two views do not decide it), then sampled every 0.5 mm again. Its
-    radius is the child's first one.
-    The child's pair gets the two paths ahead of its pieces, so that its reprojection
-    is measured against what both images show there.
+    damped Gauss-Newton steps of :func:`_onto_paths` (the depth stays as the curve put
+    it where the two views do not decide it), then sampled every 0.5 mm again. Its
+    radius is the child's first one. The child's pair gets the two paths ahead of its
+    pieces, so that its reprojection is measured against what both images show there.
+
+    Returns None when it did so; where the stretch stays more than :data:`BRIDGE_MAX_PX`
+    (mean) off either path (the two paths are not one vessel: one of them turns onto
+    another vessel at a crossing), ``child`` is left as it was and the two mean
+    distances (px) are returned.
     """
     pts = child.points_mm
     p0, p1 = np.asarray(target, float), pts[0]
@@ -936,10 +935,12 @@ def _bridge(child: BranchResult, target: np.ndarray, views: tuple[CArmView, CArm
 
 
 def _onto_paths(points: np.ndarray, free: np.ndarray, views: tuple[CArmView, CArmView],
-                paths: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+                paths: Sequence[np.ndarray], ramp: np.ndarray | None = None) -> np.ndarray:
     """``points`` whose ``free`` ones take ``ON_VESSEL_ROUNDS`` damped Gauss-Newton steps
     towards the 3D point whose projections are the nearest points of the 2D ``paths``
-    (px, one per view), the steps smoothed along the curve (as :func:`_back_on_vessels`)."""
+    (px, one per view). ``ON_VESSEL_DAMPING`` keeps the depth where the views do not
+    decide it; the steps are smoothed along the curve (5 samples) and scaled by ``ramp``
+    (one factor per free point), if given."""
     x = points[free].copy()
     if not len(x):
         return points
@@ -959,7 +960,8 @@ def _onto_paths(points: np.ndarray, free: np.ndarray, views: tuple[CArmView, CAr
         r = np.concatenate(res, axis=1)  # (n, 4) px
         a = np.einsum("nij,nik->njk", jac, jac) + ON_VESSEL_DAMPING * np.eye(3)
         step = np.linalg.solve(a, np.einsum("nij,ni->nj", jac, r)[..., None])[..., 0]
-        x += ndimage.uniform_filter1d(step, size=min(5, len(step)), axis=0, mode="nearest")
+        step = ndimage.uniform_filter1d(step, size=min(5, len(step)), axis=0, mode="nearest")
+        x += step if ramp is None else ramp * step
     out = points.copy()
     out[free] = x
     return out
@@ -984,35 +986,18 @@ def _back_on_vessels(moved: np.ndarray, original: np.ndarray, views: tuple[CArmV
     changed = np.flatnonzero(np.linalg.norm(moved - original, axis=1) > 1e-9)
     if len(changed) < 2:
         return moved
-    idx = np.arange(1, changed[-1] + 1)
-    x = moved[idx].copy()
-    along = np.cumsum(np.linalg.norm(np.diff(moved[: idx[-1] + 1], axis=0), axis=1))
+    free = np.zeros(len(moved), bool)
+    free[1: changed[-1] + 1] = True
+    along = np.cumsum(np.linalg.norm(np.diff(moved[: changed[-1] + 1], axis=0), axis=1))
     ramp = np.clip(along / ON_VESSEL_RAMP_MM, 0.0, 1.0)[:, None]  # no kink at the new start
-    lines = []
+    paths = []
     for view, piece in zip(views, pieces, strict=True):
         piece = np.asarray(piece, float)
         first = view.project(original[:1])[0]
         if np.linalg.norm(piece[-1] - first) < np.linalg.norm(piece[0] - first):
             piece = piece[::-1]
-        path = resample_by_arclength(np.vstack([view.project(moved[:1]), piece]), 0.25)
-        lines.append((path, cKDTree(path)))
-    eps = 1e-3
-    for _ in range(ON_VESSEL_ROUNDS):
-        rows, res = [], []
-        for view, (dense, tree) in zip(views, lines, strict=True):
-            proj = view.project(x)
-            _, k = tree.query(proj)
-            res.append(dense[k] - proj)
-            rows.append(np.stack([(view.project(x + eps * e) - proj) / eps for e in np.eye(3)], axis=2))
-        jac = np.concatenate(rows, axis=1)  # (n, 4, 3): px per mm
-        r = np.concatenate(res, axis=1)  # (n, 4) px
-        a = np.einsum("nij,nik->njk", jac, jac) + ON_VESSEL_DAMPING * np.eye(3)
-        step = np.linalg.solve(a, np.einsum("nij,ni->nj", jac, r)[..., None])[..., 0]
-        step = ndimage.uniform_filter1d(step, size=min(5, len(step)), axis=0, mode="nearest")
-        x += ramp * step
-    out = moved.copy()
-    out[idx] = x
-    return out
+        paths.append(np.vstack([view.project(moved[:1]), piece]))
+    return _onto_paths(moved, free, views, paths, ramp)
 
 
 def _leaving_angle(points: np.ndarray, forward: np.ndarray, reach_mm: float = 2.0) -> float:
