@@ -1077,6 +1077,42 @@ def test_a_stub_between_two_close_junctions_joins_the_vessel_after_it():
     assert not longer.failed and sorted(p.branch_id for p in longer.pipes) == [0, 1, 2]
 
 
+def test_children_chained_at_a_junction_leave_the_vessel_they_start_on():
+    # Four vessels leaving one point of a vessel can come out of a reconstruction as a chain:
+    # branch 2 leaving from the very start of branch 1, branch 3 from the start of branch 2
+    # (model cs 2102 of the end-to-end benchmark: OCCT's union of such a child, which runs
+    # backwards out of its parent's start cap, ran past its 20 s; the tree took 83 s). In the
+    # solid they leave the vessel the chain starts on, at that point (z = 15 on the root).
+    tree = _tree([
+        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+         "radius": [1.5] * 30},
+        {"id": 1, "parent": 0, "name": "a", "points": _line([0, 0, 15], [1, 0, 1], 20).tolist(),
+         "radius": [1.0] * 30},
+        {"id": 2, "parent": 1, "name": "b", "points": _line([0, 0, 15], [-1, 0, 0.5], 20).tolist(),
+         "radius": [0.9] * 30},
+        {"id": 3, "parent": 2, "name": "c", "points": _line([0, 0, 15], [0, 1, 0.3], 20).tolist(),
+         "radius": [0.8] * 30},
+        {"id": 4, "parent": 1, "name": "d", "points": _line([7.07, 0, 22.07], [1, 0, 0], 15).tolist(),
+         "radius": [0.6] * 30},
+        {"id": 5, "parent": 0, "name": "e", "points": _line([0, 0, 0], [0, 1, -1], 15).tolist(),
+         "radius": [0.6] * 30},
+    ])
+    specs = {s["id"]: s for s in tree.pipe_specs()}
+    assert {i: s["parent"] for i, s in specs.items()} == {0: None, 1: 0, 2: 0, 3: 0, 4: 1, 5: 0}
+    solid = tree.solid()
+    assert not solid.failed and sorted(p.branch_id for p in solid.pipes) == [0, 1, 2, 3, 4, 5]
+    for bid, via in ((2, 1), (3, 2)):
+        assert any(f"branch {bid} (" in w and f"starts where its parent branch {via} starts" in w
+                   for w in solid.warnings)
+    for bid in (2, 3):  # on the root's axis at z = 15 (moved there, not elsewhere)
+        spine = specs[bid]["spine"]
+        assert np.allclose(spine(spine.t[3]), [0, 0, 15], atol=0.05)
+    chk = solid.check()
+    assert chk["valid"] and chk["watertight"] and chk["solids"] == 1
+    # the centrelines given are not changed
+    assert [b.parent for b in tree] == [None, 0, 1, 2, 1, 0]
+
+
 def test_a_face_unification_that_never_ends_is_given_up_and_the_solid_delivered(monkeypatch):
     # tests/data/README.md: OCCT's face unification loops forever on this tree's union.
     import vesselcad.kernel.solid as ks

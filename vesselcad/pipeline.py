@@ -35,7 +35,7 @@ from .refine import Refinement, refine_geometry
 from .segment import Segmenter
 from .splines import resample_by_arclength
 from .surface import semi_axes
-from .tree import TreeBranch, VesselTree
+from .tree import TreeBranch, VesselTree, _reattached
 
 __all__ = ["BranchResult", "Reconstruction", "ReconstructionError", "reconstruct"]
 
@@ -1392,6 +1392,11 @@ def reconstruct(
         tree = VesselTree([TreeBranch(id=b.id, parent=b.parent, points=b.points_mm, radius=b.radius_mm,
                                       name=f"branch_{b.id}", landmarks=b.pair.start, segments=(b.id,))
                            for b in ok])
+        tree = _reattached(tree)  # no child leaves from its parent's very start (a junction's chain)
+        for b in ok:
+            if tree[b.id].parent != b.parent:
+                b.parent = tree[b.id].parent
+                b.warnings += tree[b.id].warnings
     else:
         warn.append("no branch could be reconstructed in 3D")
     timings["tree"] = time.perf_counter() - t

@@ -782,6 +782,7 @@ class VesselTree:
         there is no neck).
         """
         tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
+        tree = _reattached(tree)
         if merge:
             tree = tree.merged(max_merge_angle_deg, tol_mm)
         tree, stubs = _without_stubs(tree)
@@ -1046,6 +1047,48 @@ def _without_stubs(tree: VesselTree) -> tuple[VesselTree, dict[int, dict[int, st
     out = VesselTree(list(branches.values()))
     out._locate_children()
     return out, stubs
+
+
+def _reattached(tree: VesselTree) -> VesselTree:
+    """The tree with every child that starts where its parent starts attached to the parent's parent.
+
+    Several vessels leaving one point of a vessel can come out of a
+    reconstruction as a chain: the second leaves from the very start of the
+    first, the third from the start of the second (reconstruct on a four-way
+    junction, model cs 2102). Such a child leaves its parent's start backwards,
+    through the parent's start cap, inside the grandparent: no vessel does
+    that, and OCCT's union of the two caps and walls there can run for
+    minutes. A child whose start lies within ``max(r, 1 mm)`` of arc length
+    of its parent's start (``r`` the parent's radius there) is attached to the
+    grandparent instead, where the parent is; repeated up a chain. Roots keep
+    such children. The moved children say so in their warnings; the input is
+    not changed.
+    """
+    branches = {b.id: b for b in tree.branches}
+    moved: dict[int, TreeBranch] = {}
+    changed = True
+    while changed:
+        changed = False
+        for b in list(branches.values()):
+            par = branches.get(b.parent) if b.parent is not None else None
+            if par is None or par.parent is None or len(par.points) < 2 or len(b.points) < 1:
+                continue
+            d = np.linalg.norm(par.points - b.points[0], axis=1)
+            i = int(np.argmin(d))
+            along = float(np.linalg.norm(np.diff(par.points[: i + 1], axis=0), axis=1).sum())
+            r = float(par.radius[i])
+            if along > max(r, 1.0) or d[i] > max(MAX_START_GAP_RADII * r, 2.0):
+                continue
+            nb = replace(b, parent=par.parent, parent_s_mm=None, warnings=list(b.warnings))
+            nb.warnings.append(f"starts where its parent branch {par.id} starts ({along:.1f} mm along it): "
+                               f"attached to branch {par.parent}, where branch {par.id} leaves it")
+            branches[b.id] = moved[b.id] = nb
+            changed = True
+    if not moved:
+        return tree
+    out = VesselTree([branches[b.id] for b in tree.branches])
+    out._locate_children()
+    return out
 
 
 def _merge_pair(p: TreeBranch, c: TreeBranch, tol_mm: float) -> TreeBranch:
