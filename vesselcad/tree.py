@@ -1059,13 +1059,14 @@ def _reattached(tree: VesselTree) -> VesselTree:
     through the parent's start cap, inside the grandparent: no vessel does
     that, and OCCT's union of the two caps and walls there can run for
     minutes. A child whose start lies within ``max(r, 1 mm)`` of arc length
-    of its parent's start (``r`` the parent's radius there) is attached to the
-    grandparent instead, where the parent is; repeated up a chain. Roots keep
-    such children. The moved children say so in their warnings; the input is
-    not changed.
+    of its parent's start (``r`` the parent's radius there), and nearer its
+    start than its end (a child at the end of a stub is left to
+    ``_without_stubs``), is attached to the grandparent instead, where the
+    parent is; repeated up a chain. Roots keep such children. The moved
+    children say so in their warnings; the input is not changed.
     """
     branches = {b.id: b for b in tree.branches}
-    moved: dict[int, TreeBranch] = {}
+    moved = False
     changed = True
     while changed:
         changed = False
@@ -1075,15 +1076,16 @@ def _reattached(tree: VesselTree) -> VesselTree:
                 continue
             d = np.linalg.norm(par.points - b.points[0], axis=1)
             i = int(np.argmin(d))
-            along = float(np.linalg.norm(np.diff(par.points[: i + 1], axis=0), axis=1).sum())
+            steps = np.linalg.norm(np.diff(par.points, axis=0), axis=1)
+            along = float(steps[:i].sum())
             r = float(par.radius[i])
-            if along > max(r, 1.0) or d[i] > max(MAX_START_GAP_RADII * r, 2.0):
+            if along > min(max(r, 1.0), 0.5 * float(steps.sum())) or d[i] > max(MAX_START_GAP_RADII * r, 2.0):
                 continue
             nb = replace(b, parent=par.parent, parent_s_mm=None, warnings=list(b.warnings))
             nb.warnings.append(f"starts where its parent branch {par.id} starts ({along:.1f} mm along it): "
                                f"attached to branch {par.parent}, where branch {par.id} leaves it")
-            branches[b.id] = moved[b.id] = nb
-            changed = True
+            branches[b.id] = nb
+            moved = changed = True
     if not moved:
         return tree
     out = VesselTree([branches[b.id] for b in tree.branches])
