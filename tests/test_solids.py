@@ -276,6 +276,48 @@ def test_vessel_passing_over_itself_is_one_solid_without_double_counting():
     assert {t.role for _f, t in solid.faces} == {"wall", "inlet", "outlet"}
 
 
+def test_a_pipe_whose_pieces_do_not_fuse_is_kept_up_to_where_it_comes_back(monkeypatch):
+    # Where OCCT's union of the pieces of a pipe that overlaps itself fails (model lca 2021: a
+    # vessel doubling back on itself with its legs 0.12 mm apart), the branch keeps its start up
+    # to where its wall would first meet a later stretch of itself, open there, and its children
+    # on it stay in the solid; before, the branch and all its children were left out. OCCT's
+    # failure is simulated here.
+    from vesselcad.errors import GeometryError
+
+    def fail(*args, **kwargs):
+        raise GeometryError("branch 0: the 2 pieces of a pipe that overlaps itself did not fuse")
+
+    monkeypatch.setattr("vesselcad.kernel.pipes._pieces", fail)
+    r, rc = 1.5, 0.8
+    pts = _alpha_loop(1.0)[::10]
+    tree = _tree([
+        {"id": 0, "parent": None, "name": "loop", "points": pts.tolist(), "radius": [r] * len(pts)},
+        {"id": 1, "parent": 0, "name": "side", "points": _line([-10, 0, 0], [0, 1, 0], 15).tolist(),
+         "radius": [rc] * 30},
+    ])
+    solid = tree.solid()
+    assert not solid.failed and sorted(p.branch_id for p in solid.pipes) == [0, 1]
+    spec = next(s for s in solid.specs if s["id"] == 0)
+    length = float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1)))
+    kept = float(spec["spine"].t[-1] - spec["spine"].t[0])
+    # the first pass (along x at z = 0, x = -20 at s = 0) comes within 2 r of the last one (along y
+    # at x = 0, z = d = 1) where sqrt(x^2 + d^2) = 2 r: x = -2.83, s = 17.17 (0.5 mm samples)
+    assert kept == pytest.approx(20.0 - np.sqrt((2 * r) ** 2 - 1.0), abs=0.5) and kept < length
+    assert spec["cuts"] == [] and spec["end"] == "flat"
+    # the first piece is the loop's centreline up to the cut, exactly (the same curve)
+    full = next(s for s in tree.pipe_specs() if s["id"] == 0)["spine"]
+    u = np.linspace(0.0, kept, 200)
+    assert np.abs(spec["spine"](u) - full(u)).max() < 1e-9
+    assert any(f"branch 0 (loop): cut short at {kept:.1f} of" in w and "pieces failed" in w
+               for w in solid.warnings)
+    chk = solid.check()
+    assert chk["valid"] and chk["watertight"] and chk["solids"] == 1
+    # the loop up to the cut (pi r^2 per mm, flat ends) and the side branch outside the loop's wall
+    # (a 13.5 mm tube and its start's cap inside the wall, 0.5 % of the whole): to 1 %
+    side = np.pi * rc**2 * (15.0 - np.sqrt(r**2 - rc**2))
+    assert solid.volume == pytest.approx(np.pi * r**2 * kept + side, rel=1e-2)
+
+
 def test_crease_where_a_vessel_passes_over_itself():
     # The alpha loop's two straight passes (along x at z = 0, along y at z = d, radius r)
     # are pieces of one branch; where their walls meet, the outward normals are

@@ -898,6 +898,12 @@ class VesselTree:
                                          s.get("seam_deg", 0.0), s.get("neck_mm", 0.0)))
             except Exception as exc:  # one bad branch never loses the rest
                 failed[s["id"]] = f"pipe could not be built: {exc}"
+                if s.get("cuts"):  # its first piece, which does not overlap itself, is kept
+                    short = _cut_short(s, station_step_mm, str(exc))
+                    if short is not None:
+                        pipes.append(short)
+                        del failed[s["id"]]
+                        warnings.append(f"branch {s['id']} ({s['name']}): {s['warnings'][-1]}")
         t2 = time.perf_counter()
         if not pipes:
             why = "; ".join(f"branch {s['id']} ({s['name']}): {failed[s['id']]}"
@@ -942,6 +948,57 @@ class VesselTree:
 
 
 # ------------------------------------------------------------------- helpers
+def _cut_short(spec: dict[str, Any], station_step_mm: float, why: str) -> Any:
+    """The pipe of a branch that overlaps itself, up to where it first comes back near itself (None
+    if that fails too).
+
+    Where OCCT's union of the pieces of such a pipe fails (a vessel that turns
+    back on itself with its two legs a fraction of a radius apart: a doubled
+    stretch of a reconstruction, model lca 2021), the branch keeps the part
+    before it comes back near itself, with an open end there, rather than
+    being left out with all its children. ``spec`` is changed to match
+    (spine, radius law, no cuts, a flat end) and says so in its warnings.
+    """
+    from .kernel.pipes import branch_pipe
+
+    spine, law = spec["spine"], spec["radius"]
+    a, e = float(spine.t[spine.k]), float(spine.t[-spine.k - 1])
+    s, _, _, i, _, _ = _overlaps(spine, law)
+    if len(i) == 0:
+        return None
+    cut = float(s[i].min())  # where it first comes within the two radii of a later stretch of itself
+    neck = float(spec.get("neck_mm", 0.0))
+    if not neck + 0.5 < cut - a:
+        return None
+    spine, law = _truncated(spine, cut), _truncated(law, cut)
+    try:
+        pipe = branch_pipe(spec["id"], spec["name"], spec["parent"], spine, law, station_step_mm, (), "flat",
+                           spec.get("seam_deg", 0.0), neck)
+    except Exception:  # noqa: BLE001 - no shorter pipe either: the branch is left out as it was
+        return None
+    spec.update(spine=spine, radius=law, cuts=[], end="flat")
+    spec["warnings"].append(f"cut short at {cut - a:.1f} of {e - a:.1f} mm, where it starts to come back "
+                            f"near itself: OCCT's union of its pieces failed ({why})")
+    return pipe
+
+
+def _truncated(spline: interpolate.BSpline, x: float) -> interpolate.BSpline:
+    """The part of a clamped B-spline before parameter ``x``, exactly (knot insertion), clamped at ``x``."""
+    k, t = spline.k, np.asarray(spline.t, float)
+    c = np.asarray(spline.c, float)
+    flat = c.reshape(len(c), -1)
+    extra = k - int(np.sum(np.isclose(t, x, rtol=0.0, atol=1e-12)))  # copies of x to reach multiplicity k
+    cols, tt = [], t
+    for j in range(flat.shape[1]):
+        tt, cc, _ = interpolate.insert(x, (t, flat[:, j], k), m=extra) if extra > 0 else (t, flat[:, j], k)
+        cols.append(np.asarray(cc))
+    below = int(np.searchsorted(np.asarray(tt), x - 1e-12, side="left"))
+    knots = np.r_[np.asarray(tt)[:below], [x] * (k + 1)]
+    n = len(knots) - k - 1
+    coef = np.stack([cc[:n] for cc in cols], axis=1).reshape((n, *c.shape[1:]))
+    return interpolate.BSpline(knots, coef, k)
+
+
 def _neck(law: interpolate.BSpline, r_parent: float, share: float, length: float) -> interpolate.BSpline:
     """``law`` (cubic) minus a smooth dip that takes its start down to ``share * r_parent``.
 
@@ -1321,6 +1378,30 @@ def _contacts(specs: list[dict[str, Any]], step: float = 0.25) -> list[str]:
     return out
 
 
+def _overlaps(spine: interpolate.BSpline, law: interpolate.BSpline
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of 0.5 mm samples where a pipe comes back near itself (see :func:`_self_approach`).
+
+    Returns the samples' parameters, points and radii, and for each such pair
+    (``i < j``) the two indices and the wall-to-wall gap (negative).
+    """
+    from scipy.spatial import cKDTree
+
+    a, e = float(spine.t[3]), float(spine.t[-4])
+    s = np.linspace(a, e, max(int((e - a) / 0.5), 2) + 1)
+    p = spine(s)
+    r = np.ravel(law(s))
+    pairs = cKDTree(p).query_pairs(2.0 * float(r.max()), output_type="ndarray")
+    none = np.zeros(0, int)
+    if len(pairs) == 0:
+        return s, p, r, none, none, np.zeros(0)
+    i, j = pairs.min(axis=1), pairs.max(axis=1)
+    gap = np.linalg.norm(p[i] - p[j], axis=1) - r[i] - r[j]
+    far = np.abs(s[i] - s[j]) > np.pi * (r[i] + r[j])
+    bad = far & (gap < 0)
+    return s, p, r, i[bad], j[bad], gap[bad]
+
+
 def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> tuple[list[str], list[float]]:
     """Where a branch's pipe would overlap itself, and where to cut it so no piece does.
 
@@ -1337,25 +1418,13 @@ def _self_approach(spine: interpolate.BSpline, law: interpolate.BSpline) -> tupl
     cuts : list of float
         Spine parameters (mm) to cut the pipe at, ascending; empty when it is clean.
     """
-    from scipy.spatial import cKDTree
-
-    a, e = float(spine.t[3]), float(spine.t[-4])
-    s = np.linspace(a, e, max(int((e - a) / 0.5), 2) + 1)
-    p = spine(s)
-    r = np.ravel(law(s))
-    pairs = cKDTree(p).query_pairs(2.0 * float(r.max()), output_type="ndarray")
-    if len(pairs) == 0:
+    s, p, r, i, j, gap = _overlaps(spine, law)
+    if len(i) == 0:
         return [], []
-    i, j = pairs.min(axis=1), pairs.max(axis=1)
-    gap = np.linalg.norm(p[i] - p[j], axis=1) - r[i] - r[j]
-    far = np.abs(s[i] - s[j]) > np.pi * (r[i] + r[j])
-    bad = far & (gap < 0)
-    if not np.any(bad):
-        return [], []
-    k = np.flatnonzero(bad)[np.argmin(gap[bad])]
+    k = int(np.argmin(gap))
     # Stab every overlapping pair's interval with a cut, earliest-ending first (greedy
     # interval stabbing; the cut goes to the middle of the first unstabbed interval).
-    lo, hi = s[i[bad]], s[j[bad]]
+    lo, hi = s[i], s[j]
     cuts: list[float] = []
     for m in np.argsort(hi, kind="stable"):
         if not any(lo[m] < c < hi[m] for c in cuts):
