@@ -898,7 +898,7 @@ class VesselTree:
                                          s.get("seam_deg", 0.0), s.get("neck_mm", 0.0)))
             except Exception as exc:  # one bad branch never loses the rest
                 failed[s["id"]] = f"pipe could not be built: {exc}"
-                if s.get("cuts"):  # its first piece, which does not overlap itself, is kept
+                if s.get("cuts"):  # its start, up to where it first comes back near itself, is kept
                     short = _cut_short(s, station_step_mm, str(exc))
                     if short is not None:
                         pipes.append(short)
