@@ -796,10 +796,12 @@ def test_edges_of_a_few_micrometres_are_merged_into_their_neighbours(monkeypatch
     # neighbours (ShapeFix leaves one of 12 um between a dome and a wall); the solid stays
     # one valid watertight solid of the same volume, and every face keeps its branch and role.
     # (Built as before stubs were joined to their continuation: the 1.7 mm stub of this tree
-    # is where most of those edges were; joined, the shortest edge is 80 um.)
+    # is where most of those edges were; joined, the shortest edge is 80 um. With the lead-ins of
+    # siblings at a parent's end staggered, the shortest is 142 um.)
     from vesselcad.kernel.solid import SHORT_EDGE_MM, edge_lengths
 
     monkeypatch.setattr("vesselcad.tree.STUB_RADII", 0.0)
+    monkeypatch.setattr("vesselcad.tree.END_STAGGER_RADII", None)  # and before staggered lead-ins
     solid = _draped_mask("24_gt.png").separated().solid()
     before = np.array(edge_lengths(solid.shape))
     assert before.min() < 0.005 and np.count_nonzero(before < SHORT_EDGE_MM) == 5
@@ -1320,6 +1322,7 @@ def test_a_slow_union_adding_back_a_lost_branch_gives_way_to_the_branch_by_branc
         pytest.skip("no helper process on this machine")
     monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 5.0)
     monkeypatch.setattr(vt, "END_NECK_SHARE", None)  # the junctions as swept before necks
+    monkeypatch.setattr(vt, "END_STAGGER_RADII", None)  # and before staggered lead-ins
     tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "fuse_slow_lca_2006.json")
     solid = tree.solid()
     notes = [w for w in solid.warnings if "fused the branches one by one in tree order" in w]
