@@ -1433,3 +1433,51 @@ def test_inside_an_application_no_helper_is_started(monkeypatch):
     solid = _y_tree().solid()
     assert ks._WORKER is False
     assert not solid.failed and _roles(solid) == (1, 3) and solid.check()["watertight"]
+
+
+def _inlet_area(solid):
+    from vesselcad.kernel.solid import shape_area
+
+    return sum(shape_area(f) for f, tag in solid.faces if tag.role == "inlet")
+
+
+@pytest.mark.parametrize("extend", [True, False])
+def test_a_vessel_leaving_at_the_ostium_leaves_the_inlet_a_whole_disc(monkeypatch, extend):
+    # A child that leaves the root right at its start, sideways and a little backwards (100 deg
+    # from the root's direction; model rca 2122 of the end-to-end benchmark, 105 deg), has a wall
+    # that runs behind the root's flat inlet and cuts it: the inlet face of the solid is then part
+    # of a disc (rca 2122: half of it), not what a flow solver's inlet should be. The root's pipe
+    # is extended straight upstream instead, until every child's wall is a quarter of the root's
+    # radius downstream of the inlet, so the inlet is the whole disc of radius 1.5.
+    import vesselcad.tree as vt
+
+    if not extend:
+        monkeypatch.setattr(vt, "INLET_CLEARANCE_RADII", None)
+    side = [np.sin(np.radians(100.0)), 0.0, np.cos(np.radians(100.0))]
+    tree = _tree([
+        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+         "radius": [1.5] * 30},
+        {"id": 1, "parent": 0, "name": "side", "points": _line([0, 0, 0.3], side, 15).tolist(),
+         "radius": [1.0] * 30},
+    ])
+    solid = tree.solid()
+    assert not solid.failed
+    chk = solid.check()
+    assert chk["valid"] and chk["watertight"] and chk["solids"] == 1
+    inlet = solid.caps()[0]
+    assert inlet["role"] == "inlet" and inlet["branch_id"] == 0
+    disc = np.pi * 1.5 ** 2
+    if not extend:  # the child's wall cuts the inlet disc at z = 0
+        assert _inlet_area(solid) < 0.9 * disc and abs(inlet["centre"][2]) < 1e-3
+        return
+    assert _inlet_area(solid) == pytest.approx(disc, rel=1e-4)
+    # The child's wall reaches z = 0.3 - sin(100 deg) * 1.0 = -0.685 mm at its start circle and
+    # lower as it runs on backwards; the inlet lies at least a quarter radius below that, on the
+    # root's axis, and the extension is at most two root radii.
+    assert np.allclose(inlet["centre"][:2], 0.0, atol=1e-3)
+    assert -3.0 <= inlet["centre"][2] <= -0.685 - 0.25 * 1.5
+    assert np.allclose(inlet["normal"], [0, 0, -1], atol=1e-9) and inlet["radius"] == pytest.approx(1.5)
+    assert any("branch 0 (main): inlet moved" in w and "branch 1 leaves next to the ostium" in w
+               for w in solid.warnings)
+    # the centrelines given are not changed
+    assert np.allclose(tree[0].points[0], [0, 0, 0])
