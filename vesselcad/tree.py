@@ -1009,7 +1009,8 @@ def _cut_short(spec: dict[str, Any], station_step_mm: float, why: str) -> Any:
 def _inlet_reach(root: dict[str, Any], child: dict[str, Any], step_mm: float = 0.1) -> float:
     """How far (mm, along the root's start direction) a child's wall reaches upstream of the
     root's inlet plane, over the child's stretch near the inlet disc (negative: it stays
-    downstream)."""
+    downstream; infinite: it leaves more than ``INLET_MAX_CHILD_ANGLE_DEG`` from the root's
+    direction, back past the ostium)."""
     spine, law = root["spine"], root["radius"]
     a = float(spine.t[spine.k])
     c0 = np.asarray(spine(a), float)
@@ -1043,10 +1044,10 @@ def _extend_inlet(root: dict[str, Any], children: list[dict[str, Any]]) -> None:
     inlet is then a whole disc, as flow solvers expect. The reconstructed
     centreline is unchanged; the spec's warnings say by how much.
     """
-    if not children:
-        return
     spine, law = root["spine"], root["radius"]
     a = float(spine.t[spine.k])
+    if not children or abs(float(law.t[law.k]) - a) > 1e-9:  # (the law starts where the spine does)
+        return
     r0 = float(np.ravel(law(a))[0])
     clearance = INLET_CLEARANCE_RADII * r0
     reach = {c["id"]: _inlet_reach(root, c) for c in children}
@@ -1061,12 +1062,7 @@ def _extend_inlet(root: dict[str, Any], children: list[dict[str, Any]]) -> None:
     d = np.asarray(spine.derivative()(a), float)
     span = length / float(np.linalg.norm(d))  # parameter span of the straight piece
     root["spine"] = _prepended(spine, span, lambda i, k: spine(a) - span * d * (k - i) / k)
-    root["radius"] = _prepended(law, span, lambda i, k: np.ravel(law(a))[0])
-    unnecked = root.get("radius_unnecked")
-    if unnecked is law or unnecked is None:
-        root["radius_unnecked"] = root["radius"]
-    else:
-        root["radius_unnecked"] = _prepended(unnecked, span, lambda i, k: np.ravel(unnecked(a))[0])
+    root["radius"] = root["radius_unnecked"] = _prepended(law, span, lambda i, k: r0)  # (roots have no neck)
     who = ", ".join(str(i) for i, x in reach.items() if x > -clearance)
     root["warnings"].append(f"inlet moved {length:.2f} mm upstream along the vessel's start direction: "
                             f"branch {who} leaves next to the ostium, and its wall would cut the inlet "
