@@ -80,6 +80,11 @@ MIN_OPEN_PX = 16.0
 FORESHORTENING_FREE = 1.2
 #: Width of the gain factor past ``FORESHORTENING_FREE`` (see :func:`_foreshortening_factor`).
 FORESHORTENING_SIGMA = 0.2
+#: A candidate whose gain per px of its shorter aligned length is below this is not chosen: the
+#: product of its plausibility factors (error, radii, foreshortening, heart's surface) is so low
+#: that it is wrong as a rule, and taking it only because nothing else claims its branches and
+#: landmarks asserts wrong landmark pairs (docs/centreline2d.md, "Weak candidates"; None: any).
+MIN_GAIN_DENSITY: float | None = 0.03
 #: Pairs whose foreshortening factor is below this are dropped.
 MIN_FORESHORTENING = 0.1
 #: The 3D length of a pair is measured on chords this long (px), not on the noisy sample steps.
@@ -404,7 +409,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     partner is also paired from its agreeing end for as long as the two curves
     agree (error below half of ``branch_tol_px``). The consistent set of
     candidates with the largest total paired length times agreement is then
-    chosen (an integer program solved with HiGHS): every landmark is paired
+    chosen (an integer program solved with HiGHS; candidates whose gain per
+    px is below ``MIN_GAIN_DENSITY`` are left out): every landmark is paired
     with at most one landmark and every branch used once, so the result
     respects the topology of both trees; a chain matched to one branch marks
     a branch point seen in one view only. Two roots that agree are the
@@ -636,6 +642,11 @@ class _Cand:
     edges_b: list[int]
     points_mm: np.ndarray | None = None  # triangulated points along the alignment
 
+    @property
+    def length(self) -> float:
+        """The shorter of the two aligned lengths (px)."""
+        return float(min(self.pa.s[self.end[0]], self.pb.s[self.end[1]]))
+
     @classmethod
     def closed(cls, gain: float, cost: float, pa: _Path, pb: _Path,
                path: tuple[np.ndarray, np.ndarray]) -> _Cand:
@@ -827,10 +838,14 @@ def _select(cands: list[_Cand]) -> tuple:
     point seen in one view only) is not paired at all; every branch is used by
     at most one candidate. Solved with HiGHS (scipy.optimize.milp); should it
     find no solution in time, candidates are taken greedily by gain.
+    Candidates whose gain per px of aligned length is below
+    ``MIN_GAIN_DENSITY`` take no part.
     """
     from scipy import sparse
     from scipy.optimize import Bounds, LinearConstraint, milp
 
+    if MIN_GAIN_DENSITY is not None:
+        cands = [c for c in cands if c.gain >= MIN_GAIN_DENSITY * c.length]
     if not cands:
         return [], {}, {}, set(), set(), set(), set()
     pairs: dict[tuple[int, int], int] = {}
