@@ -192,7 +192,7 @@ def main() -> None:
     ap.add_argument("--variants", default="truth,truth+1.5deg,model")
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--model", metavar="ONNX", help="segmentation model of the 'model' variant: a file, "
-                    "'fp32' or 'int8' (default: the bundled fp32 model)")
+                    "'fp32' or 'int8' (default: Segmenter()'s, the bundled int8 model on the CPU)")
     ap.add_argument("--frame-search", choices=["all", "coarse"], default="all",
                     help="model variant: frames labelled for the phase matching, all (default) or coarse "
                     "to fine (reconstruct(frame_search=...))")

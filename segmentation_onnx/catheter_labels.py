@@ -171,7 +171,7 @@ def load_targets(path: str | Path = TARGETS, real_dir: str | Path | None = None,
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", default=None, help="labelling model (default: the shipped fp32 file)")
+    ap.add_argument("--model", default="fp32", help="labelling model (default: the shipped fp32 file)")
     ap.add_argument("--real-dir", help="xca-real folder (default: see data.find_real_dir)")
     ap.add_argument("--polylines", default=str(POLYLINES), help="JSON of the drawn catheters")
     ap.add_argument("--out", default=str(TARGETS), help="targets (.npz); the JSON is copied beside it")

@@ -132,6 +132,7 @@ def test_report_follows_the_contract(recon, tmp_path):
     assert rep["view_a"]["refined"] is False
     assert all({"id", "reprojection_px", "reprojection_mm", "status"} <= set(b) for b in rep["branches"])
     assert set(rep["timings_s"]) >= {"segmentation", "phase", "matching", "centrelines_3d", "solid"}
+    assert rep["segmentation"] == {"labels": "given"}
     surf = rep["matching"]["surface"]
     assert surf is None or set(surf) == {"semi_axes_mm", "spread_mm", "inliers"}
     # The ostium: the trunk's start, where the catheter ends, found as the root in both views and
@@ -265,6 +266,21 @@ def test_runs_without_a_stationary_object_are_matched_by_their_vessels(tmp_path)
     assert err.mean() < 0.5
 
 
+def test_report_names_the_model_that_labelled_the_frames():
+    # a user reading report.json can tell which file made the labels (the int8 model by default
+    # on the CPU) and whether it was changed since
+    import hashlib
+
+    from vesselcad.pipeline import _segmentation_summary
+    from vesselcad.segment import bundled_model_path
+
+    info = _segmentation_summary(vc.Segmenter(threads=1), "chosen", "coarse")
+    want = hashlib.sha256(bundled_model_path("gated_unet_int8.onnx").read_bytes()).hexdigest()
+    assert info["labels"] == "model" and info["model"] == "gated_unet_int8.onnx" and info["sha256"] == want
+    assert info["layout"] in ("nchwc", "nchw") and (info["tta"], info["frame_search"]) == ("chosen", "coarse")
+    assert _segmentation_summary(vc.Segmenter("fp32", threads=1), "none", "all")["model"] == "gated_unet.onnx"
+
+
 def test_chosen_frames_are_segmented_again_with_mirror_tta():
     # Every frame is segmented once (fast, for the phase matching); the two chosen frames
     # again with mirror test-time augmentation, and the tree comes from those labels.
@@ -285,6 +301,9 @@ def test_chosen_frames_are_segmented_again_with_mirror_tta():
 
     rec = reconstruct(ra, rb, model=Recording(), solid=False, refine=False)
     assert calls == [((3, 384, 384), False), ((3, 384, 384), False), ((384, 384), True), ((384, 384), True)]
+    # report.json says how the labels were made (a model without a file here)
+    assert rec.report()["segmentation"] == {"labels": "model", "model": None, "sha256": None, "layout": None,
+                                            "tta": "chosen", "frame_search": "all"}
     # the model's labels: the vessels weigh more in the phase matching than given labels do
     assert rec.phase.vessel_weight == 30.0
     assert reconstruct(ra, rb, labels=(la, lb), solid=False, refine=False).phase.vessel_weight == 10.0

@@ -21,7 +21,7 @@ REAL_IDS = (4, 8, 12, 16, 20, 24, 28, 32, 36, 40)
 
 @pytest.fixture(scope="module")
 def seg() -> vc.Segmenter:
-    return vc.Segmenter(threads=2)
+    return vc.Segmenter("fp32", threads=2)
 
 
 @pytest.fixture(scope="module")
@@ -100,9 +100,9 @@ def test_mirror_tta_is_mirror_equivariant(seg, phantom_frames):
     flips = ((), (1,), (0,), (0, 1))
     hand = np.mean([np.flip(seg(np.ascontiguousarray(np.flip(frame, a)), return_proba=True)[1],
                             tuple(x + 1 for x in a)) for a in flips], axis=0)
-    mirror_only = vc.Segmenter(threads=2, tta=True, tta_scales=(1.0,))
+    mirror_only = vc.Segmenter("fp32", threads=2, tta=True, tta_scales=(1.0,))
     np.testing.assert_allclose(mirror_only(frame, return_proba=True)[1], hand, atol=1e-5)
-    seg192 = vc.Segmenter(threads=2, max_side=192)
+    seg192 = vc.Segmenter("fp32", threads=2, max_side=192)
     small = np.mean([np.flip(seg192(np.ascontiguousarray(np.flip(frame, a)), return_proba=True)[1],
                              tuple(x + 1 for x in a)) for a in flips], axis=0)
     np.testing.assert_allclose(p, (hand + small) / 2, atol=1e-5)
@@ -160,7 +160,7 @@ def test_any_size_and_dtype(seg, phantom_frames):
     if v8.sum() > 500:
         assert (v8 & vb).sum() / (v8 | vb).sum() > 0.6
     # batching does not change results
-    seg1 = vc.Segmenter(threads=2, batch_size=1)
+    seg1 = vc.Segmenter("fp32", threads=2, batch_size=1)
     np.testing.assert_array_equal(seg1(frames[:3]), seg(frames[:3]))
 
 
@@ -211,10 +211,11 @@ def test_both_convolution_layouts_compute_the_same_network(phantom_frames):
     # onnxruntime's blocked NCHWc convolutions and its plain im2col/GEMM ones are two
     # implementations of the same network: same labels, probabilities equal to float rounding.
     frames = phantom_frames[0][:2]
-    out = {lay: vc.Segmenter(threads=2, layout=lay)(frames, return_proba=True) for lay in ("nchwc", "nchw")}
+    out = {lay: vc.Segmenter("fp32", threads=2, layout=lay)(frames, return_proba=True)
+           for lay in ("nchwc", "nchw")}
     assert np.array_equal(out["nchwc"][0], out["nchw"][0])
     assert np.abs(out["nchwc"][1] - out["nchw"][1]).max() < 1e-4
-    assert vc.Segmenter(threads=2).layout in ("nchwc", "nchw")  # 'auto' picked one
+    assert vc.Segmenter("fp32", threads=2).layout in ("nchwc", "nchw")  # 'auto' picked one
 
 
 def test_int8_model_keeps_the_labels(seg, phantom_frames):
@@ -229,6 +230,15 @@ def test_int8_model_keeps_the_labels(seg, phantom_frames):
     iou32 = dict(zip(CLASSES, iou_per_class(pred32, labels), strict=True))
     assert iou8["vessel"] > 0.5 and iou8["vessel"] > iou32["vessel"] - 0.03
     assert (pred8 == pred32).mean() > 0.98
+
+
+def test_the_default_on_the_cpu_is_the_int8_model(seg):
+    # the int8 file labels as the fp32 one does (test above) in a fraction of the time on CPUs;
+    # other execution providers get the fp32 file (their int8 kernels are not what they are fast at)
+    default = vc.Segmenter(threads=2)
+    assert default.path.name == "gated_unet_int8.onnx"
+    assert vc.Segmenter(threads=2, providers=["CPUExecutionProvider"]).path == default.path
+    assert seg.path.name == "gated_unet.onnx"
 
 
 @pytest.mark.parametrize("name", ["fast", "fast-int8"])

@@ -239,6 +239,12 @@ class Reconstruction:
     timings : dict of str to float
         Seconds per stage.
     warnings : list of str
+    sources : (str, str)
+        The runs' files (empty where the runs were given as arrays).
+    segmentation : dict or None
+        Where the labels came from: ``{"labels": "given"}``, or the model
+        that made them (``model`` file name, its ``sha256``, ``layout``,
+        ``tta``, ``frame_search``); report.json's ``segmentation``.
     """
 
     tree: VesselTree | None
@@ -256,6 +262,7 @@ class Reconstruction:
     timings: dict[str, float]
     warnings: list[str] = field(default_factory=list)
     sources: tuple[str, str] = ("", "")
+    segmentation: dict[str, Any] | None = None
 
     @property
     def ok_branches(self) -> list[BranchResult]:
@@ -288,6 +295,7 @@ class Reconstruction:
         return {
             "vesselcad": _version(),
             "sources": list(self.sources),
+            "segmentation": self.segmentation,
             "frame_a": int(self.phase.frame_a), "frame_b": int(self.phase.frame_b),
             "phase_error_mm": phase["error_mm"], "phase_error_px": phase["error_px"],
             "phase": phase,
@@ -371,6 +379,24 @@ def _version() -> str:
     from . import __version__
 
     return __version__
+
+
+_SHA256: dict[str, str] = {}
+
+
+def _segmentation_summary(seg: Segmenter, tta: str, frame_search: str) -> dict[str, Any]:
+    """Which model labelled the frames, and how (report.json's ``segmentation``)."""
+    import hashlib
+
+    path = getattr(seg, "path", None)
+    digest = None
+    if path is not None and Path(path).is_file():
+        key = str(Path(path).resolve())
+        if key not in _SHA256:
+            _SHA256[key] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        digest = _SHA256[key]
+    return {"labels": "model", "model": None if path is None else Path(path).name, "sha256": digest,
+            "layout": getattr(seg, "layout", None), "tta": tta, "frame_search": frame_search}
 
 
 def _surface_summary(surface: Any) -> dict[str, Any] | None:
@@ -1171,7 +1197,7 @@ def reconstruct(
     model : path, {'fp32', 'int8', 'fast', 'fast-int8'} or Segmenter, optional
         Segmentation model (ONNX file or the name of a bundled one, see
         :class:`Segmenter`), or a loaded ``Segmenter`` to reuse across calls;
-        default: the bundled gated U-Net (fp32).
+        default: the bundled gated U-Net, in int8 on the CPU (``Segmenter()``).
     labels : (array, array), optional
         Segmentation labels of every frame of each run (N, H, W) instead of
         running the model (0 background, 1 vessel, 2 catheter, 3 balloon, 4 lead).
@@ -1290,8 +1316,10 @@ def reconstruct(
         if not isinstance(labels, (tuple, list)) or len(labels) != 2:
             raise ArgumentError("labels: expected a pair (labels of run A, labels of run B)")
         la, lb = _check_labels(labels[0], ra, "labels[0]"), _check_labels(labels[1], rb, "labels[1]")
+        seg_info: dict[str, Any] = {"labels": "given"}
     else:
         seg = model if isinstance(model, Segmenter) else Segmenter(model)
+        seg_info = _segmentation_summary(seg, tta, frame_search)
         if frame_search == "coarse" and tta != "all":
             lz = (_FrameLabeller(seg, ra, progress), _FrameLabeller(seg, rb, progress))
             lz[0].coarse(None if frames is None else frames[0])
@@ -1417,5 +1445,5 @@ def reconstruct(
         tree=tree, solid=vsolid, phase=phase, graphs=(ga, gb), match=match, branches=results,
         views=views, header_views=(ra.view, rb.view), refinement=refinement,
         frames=(ra.frames[fa], rb.frames[fb]), labels=(lab_a, lab_b), errors=_summary(results),
-        timings=timings, warnings=warn, sources=(ra.source, rb.source),
+        timings=timings, warnings=warn, sources=(ra.source, rb.source), segmentation=seg_info,
     )

@@ -37,11 +37,15 @@ __all__ = ["Segmenter", "CLASSES", "CLASS_COLOURS", "BUNDLED_MODELS", "TTA_SCALE
 CLASSES: tuple[str, ...] = ("background", "vessel", "catheter", "balloon", "lead")
 _MULTIPLE = 16
 _BUNDLED = "gated_unet.onnx"
-#: Names accepted as ``Segmenter(model=...)`` for the bundled gated U-Nets: fp32 (default) and its
-#: static int8 quantization (7-bit weights; 10x faster on CPUs with VNNI, see MODEL_CARD.md), and the
-#: half-width network distilled from it ("fast", ~3x faster, a little less accurate) and its int8 file.
+#: Names accepted as ``Segmenter(model=...)`` for the bundled gated U-Nets: fp32 and its static int8
+#: quantization (7-bit weights; the default on the CPU: the same accuracy, 1.6x faster on AVX2 CPUs
+#: and 2.5-11x on CPUs with VNNI, see MODEL_CARD.md), and the half-width network distilled from it
+#: ("fast", ~3x faster, a little less accurate) and its int8 file.
 BUNDLED_MODELS: dict[str, str] = {"fp32": _BUNDLED, "int8": "gated_unet_int8.onnx",
                                   "fast": "gated_unet_fast.onnx", "fast-int8": "gated_unet_fast_int8.onnx"}
+#: The bundled model ``Segmenter()`` loads when onnxruntime runs on the CPU (fp32 with other
+#: execution providers, whose int8 kernels are not what they are fast at).
+DEFAULT_CPU_MODEL = "int8"
 #: Memory layouts of onnxruntime's CPU convolutions (``Segmenter(layout=...)``).
 LAYOUTS = ("auto", "nchwc", "nchw")
 #: Default ``Segmenter(tta_scales=...)``: test-time augmentation runs the network on the frame
@@ -127,10 +131,14 @@ class Segmenter:
         An ``.onnx`` file with one input ``(N, 1, H, W)`` float32 and one
         output ``(N, C, H, W)`` of class logits (C >= 2; class order as in
         :data:`CLASSES`), or the name of a bundled model
-        (:data:`BUNDLED_MODELS`). Default: the bundled gated U-Net (fp32).
-        ``'int8'`` is its static int8 quantization: the same labels on 99 %
-        of the pixels, ~10x faster on CPUs with VNNI (Intel since 2019, AMD
-        Zen 4), about as fast as fp32 on others. ``'fast'`` is a network of
+        (:data:`BUNDLED_MODELS`). Default: the bundled gated U-Net, as its
+        static int8 quantization (``'int8'``) when onnxruntime runs on the
+        CPU and in fp32 (``'fp32'``) with any other execution provider. The
+        int8 file gives the same labels on 99 % of the pixels and the same
+        scores (phantom IoU, real Dice, the reconstruction end to end; its
+        7-bit weights cannot saturate on CPUs without VNNI), 1.6x faster
+        than fp32 on AVX2 CPUs and 2.5-11x on CPUs with VNNI (Intel since
+        2019, AMD Zen 4); docs/segmentation.md. ``'fast'`` is a network of
         half the width (channels 8-16-32-64-128, distilled from the default
         one): about 3x faster, 0.02-0.03 lower IoU on vessels and catheters,
         fewer real guiding catheters labelled catheter (MODEL_CARD.md);
@@ -188,8 +196,12 @@ class Segmenter:
                  tta_scales: Sequence[float] = TTA_SCALES):
         import onnxruntime as ort
 
-        if model is None or (isinstance(model, str) and model in BUNDLED_MODELS):
-            path = bundled_model_path(BUNDLED_MODELS[model or "fp32"])
+        providers = list(providers or ["CPUExecutionProvider"])
+        cpu = providers == ["CPUExecutionProvider"]
+        if model is None:
+            model = DEFAULT_CPU_MODEL if cpu else "fp32"
+        if isinstance(model, str) and model in BUNDLED_MODELS:
+            path = bundled_model_path(BUNDLED_MODELS[model])
         else:
             path = Path(model)
         if not path.is_file():
@@ -217,8 +229,6 @@ class Segmenter:
             opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1
         opts.log_severity_level = 3
-        providers = list(providers or ["CPUExecutionProvider"])
-        cpu = providers == ["CPUExecutionProvider"]
 
         def session(nchwc: bool) -> Any:
             try:
