@@ -146,6 +146,7 @@ def test_report_follows_the_contract(recon, tmp_path):
         assert np.linalg.norm(np.subtract(ost[key], start_px)) < 3.0 + r_px
     html = paths["report.html"].read_text()
     assert "data:image/png;base64," in html and 'id="view3d"' in html
+    assert "Segmentation: labels given to reconstruct (no model)" in html
     # self-contained: no address to fetch (the embedded base64 images may spell "http" by chance)
     body = re.sub(r"data:[a-z/+.-]+;base64,[A-Za-z0-9+/=]+", "", html.split("<body")[1])
     assert "http" not in body

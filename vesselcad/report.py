@@ -275,6 +275,15 @@ def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_
                   "crossings differing per epipolar line)")
     phase_txt = f"phase error {ph.error_mm:.3f} mm, " if np.isfinite(ph.error_mm) else ""
     srcs = " and ".join(html.escape(s or "(in memory)") for s in rec.sources)
+    seg = report.get("segmentation") or {}
+    if seg.get("labels") == "given":
+        seg_txt = "labels given to reconstruct (no model)"
+    elif seg.get("labels") == "model":
+        seg_txt = (f"model {html.escape(str(seg.get('model') or 'given as a Segmenter'))}"
+                   f", test-time augmentation: {html.escape(str(seg.get('tta')))}"
+                   f", frames labelled: {html.escape(str(seg.get('frame_search')))}")
+    else:
+        seg_txt = "not recorded"
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>vesselcad reconstruction</title>
 <style>
@@ -285,7 +294,7 @@ img {{ max-width: 100%; }} #view3d {{ border: 1px solid #aaa; cursor: grab; }}
 .grid {{ display: flex; gap: 1.5em; flex-wrap: wrap; align-items: flex-start; }}
 </style></head><body>
 <h1>vesselcad reconstruction</h1>
-<p>Runs: {srcs}. Chosen frames: <b>A {ph.frame_a}</b>, <b>B {ph.frame_b}</b> by
+<p>Runs: {srcs}. Segmentation: {seg_txt}. Chosen frames: <b>A {ph.frame_a}</b>, <b>B {ph.frame_b}</b> by
 {html.escape(ph.basis)}{vessel_txt if ph.objects else ''} ({phase_txt}confidence
 {ph.confidence:.2f}). Branches reconstructed: <b>{len(rec.ok_branches)} of {len(rec.branches)}</b>
 matched pairs ({len(rec.graphs[0].branches)} and {len(rec.graphs[1].branches)} branches in the 2D graphs).
