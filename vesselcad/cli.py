@@ -213,26 +213,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0 if rec.tree is not None else 3
 
 
-def _demo_segmentation(frame_a, frame_b, truth_a, truth_b, png) -> dict[str, float]:
-    """Run the bundled model on the chosen frame pair; IoU per class present, overlay picture."""
-    import cv2
-
-    from .io.atomic import atomic_write_bytes
-    from .segment import CLASSES, Segmenter, overlay_labels
-
-    frames = np.stack([frame_a, frame_b])
-    truth = np.stack([truth_a, truth_b])
-    pred = Segmenter()(frames)
-    scores = {}
-    for k, name in enumerate(CLASSES[1:], start=1):
-        t, p = truth == k, pred == k
-        if t.any():
-            scores[name] = round(float((t & p).sum() / (t | p).sum()), 4)
-    pic = np.hstack([overlay_labels(f, p, truth=t == 1) for f, p, t in zip(frames, pred, truth, strict=True)])
-    atomic_write_bytes(png, cv2.imencode(".png", cv2.cvtColor(pic, cv2.COLOR_RGB2BGR))[1].tobytes())
-    return scores
-
-
 def _cmd_info(args: argparse.Namespace) -> int:
     from .io import load_run
 
