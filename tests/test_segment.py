@@ -205,6 +205,13 @@ def test_bad_input_is_rejected(tmp_path, seg):
         vc.Segmenter(batch_size=0)
     with pytest.raises(ArgumentError, match="layout"):
         vc.Segmenter(layout="nhwc")
+    # onnxruntime would only warn and fall back to the CPU (with the model meant for another provider)
+    for bad in ("CPUExecutionProvider", [], [3], [("CPUExecutionProvider", 1)]):
+        with pytest.raises(ArgumentError, match="providers: expected"):
+            vc.Segmenter(providers=bad)
+    with pytest.raises(ArgumentError, match="NoSuchExecutionProvider not available"):
+        vc.Segmenter(providers=["NoSuchExecutionProvider", "CPUExecutionProvider"])
+    assert vc.Segmenter(providers=[("CPUExecutionProvider", {})]).path.name == "gated_unet_int8.onnx"
 
 
 def test_both_convolution_layouts_compute_the_same_network(phantom_frames):

@@ -152,7 +152,9 @@ class Segmenter:
         network (vessel widths then match what it was trained on) and the
         results scaled back to the input size. ``0`` disables scaling.
     providers : sequence of str, optional
-        onnxruntime execution providers (default CPU).
+        onnxruntime execution providers (default CPU), by name or as (name,
+        options) pairs; one this onnxruntime does not have is refused (its
+        own fallback to the CPU would hide the mistake).
     layout : {'auto', 'nchwc', 'nchw'}
         Memory layout of onnxruntime's CPU convolutions. ``'nchwc'`` is
         onnxruntime's default (its blocked-layout direct convolutions);
@@ -196,8 +198,8 @@ class Segmenter:
                  tta_scales: Sequence[float] = TTA_SCALES):
         import onnxruntime as ort
 
-        providers = list(providers or ["CPUExecutionProvider"])
-        cpu = providers == ["CPUExecutionProvider"]
+        providers = self._check_providers(providers, ort.get_available_providers())
+        cpu = [p if isinstance(p, str) else p[0] for p in providers] == ["CPUExecutionProvider"]
         if model is None:
             model = DEFAULT_CPU_MODEL if cpu else "fp32"
         if isinstance(model, str) and model in BUNDLED_MODELS:
@@ -261,6 +263,34 @@ class Segmenter:
         self.threads = threads
         self.tta = bool(tta)
         self.tta_scales = scales
+
+    @staticmethod
+    def _check_providers(providers: Any, available: Sequence[str]) -> list[Any]:
+        """The execution providers as onnxruntime takes them; unknown or unavailable ones refused.
+
+        onnxruntime itself only warns and falls back to the CPU, which would also pick
+        the model meant for another provider.
+        """
+        if providers is None:
+            return ["CPUExecutionProvider"]
+
+        def name(p: Any) -> str | None:
+            if isinstance(p, str):
+                return p
+            pair = isinstance(p, tuple) and len(p) == 2 and isinstance(p[1], dict)
+            return p[0] if pair and isinstance(p[0], str) else None
+
+        seq = isinstance(providers, Sequence) and not isinstance(providers, (str, bytes))
+        items = list(providers) if seq else []
+        names = [name(p) for p in items]
+        if not items or None in names:
+            raise ArgumentError("providers: expected a list of onnxruntime execution provider names (or "
+                                f"(name, options) pairs), e.g. ['CPUExecutionProvider'], got {providers!r}")
+        missing = [n for n in names if n not in available]
+        if missing:
+            raise ArgumentError(f"providers: {', '.join(missing)} not available in this onnxruntime "
+                                f"(available: {', '.join(available)})")
+        return items
 
     def _probe(self, sess: Any, side: int = 128) -> float:
         """Seconds one call of ``sess`` takes on a ``side``² frame (after a first call)."""
