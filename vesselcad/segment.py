@@ -39,7 +39,7 @@ _MULTIPLE = 16
 _BUNDLED = "gated_unet.onnx"
 #: Names accepted as ``Segmenter(model=...)`` for the bundled gated U-Nets: fp32 and its static int8
 #: quantization (7-bit weights; the default on the CPU: the same accuracy, 1.6x faster on AVX2 CPUs
-#: and 2.5-11x on CPUs with VNNI, see MODEL_CARD.md), and the half-width network distilled from it
+#: and 2.4-11x on CPUs with VNNI, see MODEL_CARD.md), and the half-width network distilled from it
 #: ("fast", ~3x faster, a little less accurate) and its int8 file.
 BUNDLED_MODELS: dict[str, str] = {"fp32": _BUNDLED, "int8": "gated_unet_int8.onnx",
                                   "fast": "gated_unet_fast.onnx", "fast-int8": "gated_unet_fast_int8.onnx"}
@@ -137,7 +137,7 @@ class Segmenter:
         int8 file gives the same labels on 99 % of the pixels and the same
         scores (phantom IoU, real Dice, the reconstruction end to end; its
         7-bit weights cannot saturate on CPUs without VNNI), 1.6x faster
-        than fp32 on AVX2 CPUs and 2.5-11x on CPUs with VNNI (Intel since
+        than fp32 on AVX2 CPUs and 2.4-11x on CPUs with VNNI (Intel since
         2019, AMD Zen 4); docs/segmentation.md. ``'fast'`` is a network of
         half the width (channels 8-16-32-64-128, distilled from the default
         one): about 3x faster, 0.02-0.03 lower IoU on vessels and catheters,
@@ -198,8 +198,8 @@ class Segmenter:
                  tta_scales: Sequence[float] = TTA_SCALES):
         import onnxruntime as ort
 
-        providers = self._check_providers(providers, ort.get_available_providers())
-        cpu = [p if isinstance(p, str) else p[0] for p in providers] == ["CPUExecutionProvider"]
+        providers, names = self._check_providers(providers, ort.get_available_providers())
+        cpu = names == ["CPUExecutionProvider"]
         if model is None:
             model = DEFAULT_CPU_MODEL if cpu else "fp32"
         if isinstance(model, str) and model in BUNDLED_MODELS:
@@ -265,14 +265,15 @@ class Segmenter:
         self.tta_scales = scales
 
     @staticmethod
-    def _check_providers(providers: Any, available: Sequence[str]) -> list[Any]:
-        """The execution providers as onnxruntime takes them; unknown or unavailable ones refused.
+    def _check_providers(providers: Any, available: Sequence[str]) -> tuple[list[Any], list[str]]:
+        """The execution providers as onnxruntime takes them, and their names; unknown or unavailable
+        ones refused.
 
         onnxruntime itself only warns and falls back to the CPU, which would also pick
         the model meant for another provider.
         """
         if providers is None:
-            return ["CPUExecutionProvider"]
+            return ["CPUExecutionProvider"], ["CPUExecutionProvider"]
 
         def name(p: Any) -> str | None:
             if isinstance(p, str):
@@ -290,7 +291,7 @@ class Segmenter:
         if missing:
             raise ArgumentError(f"providers: {', '.join(missing)} not available in this onnxruntime "
                                 f"(available: {', '.join(available)})")
-        return items
+        return items, names
 
     def _probe(self, sess: Any, side: int = 128) -> float:
         """Seconds one call of ``sess`` takes on a ``side``² frame (after a first call)."""
