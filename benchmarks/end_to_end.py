@@ -14,6 +14,11 @@ two DICOM files, read back and reconstructed, with all outputs written
   (``objects="vessels"``: the vessels' epipolar consistency alone, as on a real
   run whose catheter tip is not found).
 
+``--fps`` and ``--frames`` set the runs' frame rate (default 15) and length
+(default 40-60 frames, varying from case to case): real runs are acquired at
+7.5-30 frames/s and hold 15-60 frames, so a run may cover two heartbeats or
+ten, and fewer cardiac phases to choose the pair from.
+
 ``--synchronized`` generates both runs at identical cardiac and respiratory
 phases (a true biplane pair instead of two runs a minute apart): the frame
 pairs are then exactly in phase, and the difference to the default run is
@@ -69,16 +74,16 @@ STAGES = ("segmentation", "phase", "graphs", "refinement", "matching", "centreli
 
 def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
              segmenter: vc.Segmenter | None = None, tta: str = "chosen",
-             frame_search: str = "all", synchronized: bool = False) -> dict:
+             frame_search: str = "all", synchronized: bool = False, fps: float = 15.0) -> dict:
     base, _, option = variant.partition("/")
     mis = 1.5 if base.endswith("1.5deg") else 0.0
-    case = generate_case(seed, kind, n_frames, miscalibration_deg=mis, synchronized=synchronized)
+    case = generate_case(seed, kind, n_frames, miscalibration_deg=mis, synchronized=synchronized, fps=fps)
     d = workdir / f"{seed}_{variant.replace('/', '_')}"
     paths = write_case(case, d)
     labels = None if base == "model" else (case.run_a.labels, case.run_b.labels)
     objects = "vessels" if option == "vessels" else "auto"
     t0 = time.perf_counter()
-    row = {"seed": seed, "anatomy": kind, "frames": n_frames, "variant": variant}
+    row = {"seed": seed, "anatomy": kind, "frames": n_frames, "fps": fps, "variant": variant}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -202,7 +207,15 @@ def main() -> None:
     ap.add_argument("--synchronized", action="store_true",
                     help="both runs at identical cardiac and respiratory phases (a true biplane pair): "
                     "what motion between the chosen frames costs")
+    ap.add_argument("--fps", type=float, default=15.0,
+                    help="frame rate of both runs (default 15; real runs are acquired at 7.5-30)")
+    ap.add_argument("--frames", type=int, metavar="N",
+                    help="frames per run (default: 40-60, varying from case to case; real runs hold 15-60)")
     args = ap.parse_args()
+    if not args.fps > 0:
+        ap.error(f"--fps: expected a positive frame rate, got {args.fps}")
+    if args.frames is not None and args.frames < 2:
+        ap.error(f"--frames: expected at least 2 frames per run, got {args.frames}")
     variants = args.variants.split(",")
     bad = [v for v in variants if v.partition("/")[0] not in ("truth", "truth+1.5deg", "model")
            or v.partition("/")[2] not in ("", "vessels")]
@@ -214,10 +227,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(args.cases):
             seed, kind = args.first_seed + i, KINDS[i % 3]
-            n_frames = 40 + (i * 7) % 21
+            n_frames = 40 + (i * 7) % 21 if args.frames is None else args.frames
             for v in variants:
                 r = run_case(seed, kind, n_frames, v, Path(tmp), segmenter, tta=args.tta,
-                             frame_search=args.frame_search, synchronized=args.synchronized)
+                             frame_search=args.frame_search, synchronized=args.synchronized, fps=args.fps)
                 rows.append(r)
                 t = r.get("truth", {})
                 print(f"seed {seed} {kind} {n_frames} frames {v}: {r['status'][:80]}; 3D mean "
@@ -225,8 +238,9 @@ def main() -> None:
                       f"ostium {t.get('ostium_mm', float('nan')):.2f} mm, "
                       f"{r['seconds']:.1f} s", file=sys.stderr, flush=True)
     sync = "synchronized" if args.synchronized else "unsynchronized"
+    frames = "40-60" if args.frames is None else str(args.frames)
     print(f"# end to end: {args.cases} phantom cases x {len(variants)} variants, 512², {sync} "
-          f"40-60 frames, model variant with mirror TTA of {args.tta} frames, "
+          f"{frames} frames at {args.fps:g} fps, model variant with mirror TTA of {args.tta} frames, "
           f"frame search {args.frame_search}")
     print(f"# {platform.platform()}, python {platform.python_version()}, {os.cpu_count()} CPUs, "
           f"{time.time() - t0:.0f} s total\n")
