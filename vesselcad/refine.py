@@ -15,6 +15,16 @@ isocentre (primary and secondary angle) and a shift of its isocentre
   other view's curve);
 - optionally the stationary object's key point in both frames.
 
+The stationary object (catheter tip, balloon) moves with the heart. Where its
+two views disagree at the chosen frames by more than ``keypoint_tol_px``, the
+heart sits elsewhere in run B than the files' geometry says: breathing (runs
+too short to share a respiratory phase: free breathing moves the heart 10-20
+mm, mostly cranio-caudally), or the patient or table moved between the runs.
+Two views see such a shift only across the epipolar lines, and the matching
+would otherwise pair whatever agrees with the wrong geometry. So view B is
+first shifted by the shortest move that makes the two rays of the key point
+meet (:func:`keypoint_shift`), and everything else starts from there.
+
 Correspondences come from :func:`vesselcad.match_graphs` with relaxed
 tolerances, and are found again after each round. The result is kept only
 if it lowers the error clearly; before and after figures are reported.
@@ -34,11 +44,16 @@ from .geometry import CArmView, check_view, reconstruction_error, triangulate
 from .matching import match_graphs
 from .splines import resample_by_arclength
 
-__all__ = ["Refinement", "refine_geometry"]
+__all__ = ["Refinement", "keypoint_shift", "refine_geometry"]
 
 #: Tolerances (px) used to find correspondences on the unrefined geometry.
 RELAXED_LANDMARK_TOL_PX = 8.0
 RELAXED_BRANCH_TOL_PX = 6.0
+#: The stationary object's key point may disagree by this reconstruction error (px) at the chosen
+#: frames before view B is shifted to make it agree (``refine_geometry(keypoint_tol_px=...)``).
+KEYPOINT_TOL_PX = 2.0
+#: The largest shift made for the key point (mm): free breathing moves the heart 10-20 mm.
+MAX_KEYPOINT_SHIFT_MM = 20.0
 
 
 @dataclass
@@ -54,9 +69,17 @@ class Refinement:
     rotation_deg : (float, float)
         Correction of view B's primary and secondary angle.
     offset_mm : numpy.ndarray, shape (3,)
-        Shift of view B's isocentre (LPS mm): table or patient motion.
+        Shift of view B's isocentre (LPS mm): table or patient motion, or
+        breathing; the key point's shift included.
     before_px, after_px : float
-        Mean reconstruction error over the correspondences before and after.
+        Mean reconstruction error over the correspondences before (on the
+        files' geometry) and after.
+    keypoint_px : (float, float)
+        Reconstruction error of the stationary object's key point on the
+        files' geometry and on the views returned (NaN without a key point).
+    keypoint_shift_mm : numpy.ndarray, shape (3,)
+        The part of ``offset_mm`` made to bring the key point's two rays
+        together (zeros when it agreed within ``keypoint_tol_px``).
     landmarks, curve_points : int
         Number of landmark pairs and branch samples used.
     warnings : list of str
@@ -72,6 +95,8 @@ class Refinement:
     landmarks: int = 0
     curve_points: int = 0
     warnings: list[str] = field(default_factory=list)
+    keypoint_px: tuple[float, float] = (float("nan"), float("nan"))
+    keypoint_shift_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def to_dict(self) -> dict[str, Any]:
         def r(x: float) -> float | None:
@@ -80,7 +105,9 @@ class Refinement:
         return {"applied": self.applied, "rotation_deg": [round(float(x), 4) for x in self.rotation_deg],
                 "offset_mm": np.round(self.offset_mm, 3).tolist(), "before_px": r(self.before_px),
                 "after_px": r(self.after_px), "landmarks": self.landmarks,
-                "curve_points": self.curve_points, "warnings": list(self.warnings)}
+                "curve_points": self.curve_points, "warnings": list(self.warnings),
+                "keypoint_px": [r(x) for x in self.keypoint_px],
+                "keypoint_shift_mm": np.round(self.keypoint_shift_mm, 3).tolist()}
 
 
 def _moved(view: CArmView, p: np.ndarray) -> CArmView:
@@ -89,6 +116,45 @@ def _moved(view: CArmView, p: np.ndarray) -> CArmView:
     d["secondary_deg"] = view.secondary_deg + float(p[1])
     d["offset_mm"] = (np.asarray(view.offset_mm) + p[2:5]).tolist()
     return CArmView.from_dict(d)
+
+
+def keypoint_shift(view_a: CArmView, point_a_px: Any, view_b: CArmView, point_b_px: Any) -> np.ndarray:
+    """The shortest shift of view B's isocentre that makes one point's two rays meet.
+
+    The ray of ``point_a_px`` in view A and that of ``point_b_px`` in view B
+    generally miss each other; shifting view B (source and detector together,
+    ``CArmView.offset_mm``) by ``t`` moves its ray by ``t``. The shortest such
+    ``t`` runs along the rays' common perpendicular, by their distance. A
+    shift within the plane of the two rays moves the point along them instead
+    and cannot be seen in the two images.
+
+    Parameters
+    ----------
+    view_a, view_b : CArmView
+    point_a_px, point_b_px : array_like, shape (2,)
+        The same point's ``(col, row)`` pixel in each view.
+
+    Returns
+    -------
+    numpy.ndarray, shape (3,)
+        The shift (LPS mm) to add to view B's ``offset_mm``; zeros when the
+        rays are parallel.
+    """
+    check_view(view_a, "view_a")
+    check_view(view_b, "view_b")
+    pa = np.asarray(point_a_px, dtype=float).reshape(-1)
+    pb = np.asarray(point_b_px, dtype=float).reshape(-1)
+    for p, name in ((pa, "point_a_px"), (pb, "point_b_px")):
+        if p.shape != (2,) or not np.all(np.isfinite(p)):
+            raise ArgumentError(f"{name}: expected one finite (col, row) pixel, got {p.tolist()}")
+    oa, da = view_a.ray(pa)
+    ob, db = view_b.ray(pb)
+    n = np.cross(da, db)
+    norm = float(np.linalg.norm(n))
+    if norm < 1e-9:
+        return np.zeros(3)
+    n /= norm
+    return -float(np.dot(ob - oa, n)) * n
 
 
 def _correspondences(va: CArmView, ga: CentrelineGraph, vb: CArmView, gb: CentrelineGraph,
@@ -146,6 +212,8 @@ def refine_geometry(
     min_error_px: float = 1.0,
     prior: float = 0.2,
     rounds: int = 2,
+    keypoint_tol_px: float | None = KEYPOINT_TOL_PX,
+    max_keypoint_shift_mm: float = MAX_KEYPOINT_SHIFT_MM,
 ) -> Refinement:
     """Correct view B's pose relative to view A from the two centreline graphs.
 
@@ -158,18 +226,27 @@ def refine_geometry(
     keypoints : ((2,), (2,)), optional
         A stationary object's key point (col, row) in frame A and frame B.
     max_rotation_deg, max_shift_mm : float
-        Bounds of the angle corrections and of the isocentre shift.
+        Bounds of the angle corrections and of the isocentre shift fitted to
+        the correspondences (after the key point's shift).
     min_gain_px : float
-        The refinement is applied only if it lowers the mean reconstruction
-        error by at least this much and by at least 20 %.
+        The fit is applied only if it lowers the mean reconstruction error
+        by at least this much and by at least 20 %.
     min_error_px : float
-        No refinement when the files' geometry already explains the
-        correspondences to this mean reconstruction error (px).
+        No fit when the geometry (after the key point's shift) already
+        explains the correspondences to this mean reconstruction error (px).
     prior : float
-        Weight of the pull toward the files' geometry (per degree, per
+        Weight of the pull toward the starting geometry (per degree, per
         ``max_shift_mm / max_rotation_deg`` mm, relative to the residuals' RMS).
     rounds : int
         Correspondences are found again after each round.
+    keypoint_tol_px : float or None
+        When the key point's reconstruction error on the files' geometry
+        exceeds this (px), view B is first shifted by
+        :func:`keypoint_shift` (breathing, table or patient motion between
+        the runs) and the shift is kept whatever the fit does. None: never.
+    max_keypoint_shift_mm : float
+        A key point that would need a longer shift is taken to be two
+        different objects: no shift, a warning.
 
     Returns
     -------
@@ -177,25 +254,59 @@ def refine_geometry(
     """
     check_view(view_a, "view_a")
     check_view(view_b, "view_b")
-    for val, name in ((max_rotation_deg, "max_rotation_deg"), (max_shift_mm, "max_shift_mm")):
+    for val, name in ((max_rotation_deg, "max_rotation_deg"), (max_shift_mm, "max_shift_mm"),
+                      (max_keypoint_shift_mm, "max_keypoint_shift_mm")):
         if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
             raise ArgumentError(f"{name}: expected a positive number, got {val!r}")
+    if keypoint_tol_px is not None and not (isinstance(keypoint_tol_px, (int, float))
+                                            and np.isfinite(keypoint_tol_px) and keypoint_tol_px >= 0):
+        raise ArgumentError(f"keypoint_tol_px: expected a number >= 0 or None, got {keypoint_tol_px!r}")
     kp = None
     if keypoints is not None:
         kp = (np.asarray(keypoints[0], float).reshape(2), np.asarray(keypoints[1], float).reshape(2))
         if not (np.all(np.isfinite(kp[0])) and np.all(np.isfinite(kp[1]))):
             kp = None
     out = Refinement(applied=False, view_a=view_a, view_b=view_b)
+
+    def kp_error(vb: CArmView) -> float:
+        if kp is None:
+            return float("nan")
+        return float(reconstruction_error(view_a, kp[0], vb, kp[1]).error_px)
+
+    # The key point first: a heart shifted between the runs, seen across the epipolar lines.
+    start_b, shift = view_b, np.zeros(3)
+    kp_before = kp_error(view_b)
+    if kp is not None and keypoint_tol_px is not None and kp_before > keypoint_tol_px:
+        t = keypoint_shift(view_a, kp[0], view_b, kp[1])
+        if np.linalg.norm(t) <= max_keypoint_shift_mm:
+            start_b, shift = _moved(view_b, np.r_[0.0, 0.0, t]), t
+            out.warnings.append(
+                f"the stationary object's key point disagreed by {kp_before:.1f} px between the chosen "
+                "frames (the heart moved between the runs: breathing, or the patient or table): view B "
+                f"shifted by {np.linalg.norm(t):.1f} mm {np.round(t, 1).tolist()} (LPS) to make it agree; a "
+                "shift along the epipolar lines cannot be seen in two views and is not corrected")
+        else:
+            out.warnings.append(
+                f"the stationary object's key point disagrees by {kp_before:.1f} px and would need view B "
+                f"shifted by {np.linalg.norm(t):.1f} mm (more than {max_keypoint_shift_mm:g} mm): taken to "
+                "be two different objects, not shifted")
+    out.keypoint_px = (kp_before, kp_error(start_b))
+    out.keypoint_shift_mm = shift.copy()
+    if np.any(shift):
+        out.applied, out.view_b, out.offset_mm = True, start_b, shift.copy()
+
     step_px = 6.0
-    lm_a, lm_b, curves = _correspondences(view_a, graph_a, view_b, graph_b, True, step_px)
+    lm_a, lm_b, curves = _correspondences(view_a, graph_a, start_b, graph_b, True, step_px)
     out.landmarks, out.curve_points = len(lm_a), int(sum(len(a) for a, _ in curves))
     if len(lm_a) + out.curve_points < 8 or not curves:
+        used = "key point's shift alone is used" if np.any(shift) else "files' geometry is used"
         out.warnings.append(f"too few correspondences to refine the geometry ({len(lm_a)} landmark pairs, "
-                            f"{out.curve_points} branch samples); the files' geometry is used")
+                            f"{out.curve_points} branch samples); the {used}")
         return out
-    before = _mean_error(view_a, view_b, lm_a, lm_b, curves)
+    before = _mean_error(view_a, start_b, lm_a, lm_b, curves)
     if before < min_error_px:
-        out.before_px = out.after_px = before
+        out.after_px = before
+        out.before_px = _mean_error(view_a, view_b, lm_a, lm_b, curves) if np.any(shift) else before
         return out
     lo = np.r_[-max_rotation_deg, -max_rotation_deg, [-max_shift_mm] * 3]
     hi = -lo
@@ -203,29 +314,35 @@ def refine_geometry(
     scale = np.r_[1.0, 1.0, [max_shift_mm / max_rotation_deg] * 3]
     for _ in range(max(int(rounds), 1)):
         def fun(q: np.ndarray, la=lm_a, lb=lm_b, cv=curves) -> np.ndarray:
-            r = _residuals(view_a, _moved(view_b, q), la, lb, cv, kp)
-            # A pull toward the files' geometry pins the directions the images cannot see (e.g.
+            r = _residuals(view_a, _moved(start_b, q), la, lb, cv, kp)
+            # A pull toward the starting geometry pins the directions the images cannot see (e.g.
             # the baseline length) and keeps small motion differences from being fitted as pose.
             return np.r_[r, prior * np.sqrt(len(r)) * q / scale]
 
         sol = least_squares(fun, p, bounds=(lo, hi), loss="soft_l1", f_scale=2.0, x_scale=scale,
                             diff_step=1e-4, max_nfev=60)
         p = sol.x
-        lm_a, lm_b, curves = _correspondences(view_a, graph_a, _moved(view_b, p), graph_b, True, step_px)
+        lm_a, lm_b, curves = _correspondences(view_a, graph_a, _moved(start_b, p), graph_b, True, step_px)
         if not curves:
             break
-    vb = _moved(view_b, p)
+    vb = _moved(start_b, p)
     # Compare on the same correspondences (found with the refined geometry).
     after = _mean_error(view_a, vb, lm_a, lm_b, curves) if curves else float("inf")
-    before_same = _mean_error(view_a, view_b, lm_a, lm_b, curves) if curves else before
-    out.before_px, out.after_px = max(before, before_same), after
-    out.rotation_deg = (float(p[0]), float(p[1]))
-    out.offset_mm = p[2:5].copy()
+    before_same = _mean_error(view_a, start_b, lm_a, lm_b, curves) if curves else before
+    start_err = max(before, before_same)
     out.landmarks, out.curve_points = len(lm_a), int(sum(len(a) for a, _ in curves))
-    if np.isfinite(after) and after <= 0.8 * out.before_px and out.before_px - after >= min_gain_px:
+    if np.isfinite(after) and after <= 0.8 * start_err and start_err - after >= min_gain_px:
         out.applied = True
         out.view_b = vb
-    if np.any(np.isclose(np.abs(p), hi, rtol=0.02)):
+        out.rotation_deg = (float(p[0]), float(p[1]))
+        out.offset_mm = shift + p[2:5]
+        out.keypoint_px = (kp_before, kp_error(vb))
+        out.after_px = after
+    else:
+        out.after_px = start_err
+    files_err = _mean_error(view_a, view_b, lm_a, lm_b, curves) if curves and np.any(shift) else start_err
+    out.before_px = max(start_err, files_err) if np.any(shift) else start_err
+    if out.applied and out.view_b is vb and np.any(np.isclose(np.abs(p), hi, rtol=0.02)):
         out.warnings.append("a correction reached its bound (max_rotation_deg / max_shift_mm): the files' "
                             "geometry may be further off than refinement allows")
     return out

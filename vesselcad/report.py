@@ -260,7 +260,10 @@ def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_
         f"{'applied' if ref['applied'] else 'not applied'}: reconstruction error {ref['before_px']} px → "
         f"{ref['after_px']} px over {ref['landmarks']} landmark pairs and {ref['curve_points']} branch "
         "samples; "
-        f"view B rotated {ref['rotation_deg']}°, isocentre shifted {ref['offset_mm']} mm")
+        f"view B rotated {ref['rotation_deg']}°, isocentre shifted {ref['offset_mm']} mm"
+        + ("" if not any(ref.get("keypoint_shift_mm") or ()) else
+           f" ({ref['keypoint_shift_mm']} mm of it for the stationary object's key point, which disagreed by "
+           f"{ref['keypoint_px'][0]} px on the files' geometry)"))
     solid = report["solid"]
     solid_txt = "not built" if solid is None else (
         f"valid {solid['valid']}, watertight {solid['watertight']}, volume {solid['volume_mm3']:.1f} mm³"
