@@ -1251,9 +1251,10 @@ def match_phase(
             f"no frame pair agrees: the {'/'.join(used)} key point's reconstruction error is at least "
             f"{least:.1f} mm over the eligible pairs ({best:.1f} mm at the chosen pair ({i}, {j}); "
             f"consistent runs: under {DISAGREE_MM:g} mm). The runs' geometry (angles, SID/SOD, pixel "
-            "spacing) does not fit the images, the patient or table moved a lot between the runs, or the "
-            "key points lie on different objects: the 3D result is unreliable; check the geometry and the "
-            "phase picture")
+            "spacing) does not fit the images, the patient or table moved between the runs, the runs are "
+            "too short to share a breathing phase, or the key points lie on different objects: the 3D "
+            "result is unreliable; check the geometry and the phase picture (reconstruct's geometry "
+            "refinement shifts view B to make the key point agree)")
     return PhaseMatch(
         frame_a=i, frame_b=j, error_mm=best, error_px=error_px, matrix=matrix, score=score,
         objects=used,

@@ -54,6 +54,9 @@ RELAXED_BRANCH_TOL_PX = 6.0
 KEYPOINT_TOL_PX = 2.0
 #: The largest shift made for the key point (mm): free breathing moves the heart 10-20 mm.
 MAX_KEYPOINT_SHIFT_MM = 20.0
+#: The key point's shift is kept only if more pairs of the two graphs' landmarks (branch and end
+#: points, every pair) reconstruct within this error (px) with it than without it.
+LANDMARK_CHECK_TOL_PX = 2.0
 
 
 @dataclass
@@ -79,7 +82,12 @@ class Refinement:
         files' geometry and on the views returned (NaN without a key point).
     keypoint_shift_mm : numpy.ndarray, shape (3,)
         The part of ``offset_mm`` made to bring the key point's two rays
-        together (zeros when it agreed within ``keypoint_tol_px``).
+        together (zeros when it agreed within ``keypoint_tol_px``, or when the
+        landmarks did not agree better with it).
+    keypoint_landmarks : (int, int)
+        When the key point disagreed: the pairs of landmarks of the two
+        graphs within ``LANDMARK_CHECK_TOL_PX`` on the files' geometry and with
+        the key point's shift (the shift is kept only if the second is larger).
     landmarks, curve_points : int
         Number of landmark pairs and branch samples used.
     warnings : list of str
@@ -97,6 +105,7 @@ class Refinement:
     warnings: list[str] = field(default_factory=list)
     keypoint_px: tuple[float, float] = (float("nan"), float("nan"))
     keypoint_shift_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    keypoint_landmarks: tuple[int, int] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         def r(x: float) -> float | None:
@@ -107,7 +116,9 @@ class Refinement:
                 "after_px": r(self.after_px), "landmarks": self.landmarks,
                 "curve_points": self.curve_points, "warnings": list(self.warnings),
                 "keypoint_px": [r(x) for x in self.keypoint_px],
-                "keypoint_shift_mm": np.round(self.keypoint_shift_mm, 3).tolist()}
+                "keypoint_shift_mm": np.round(self.keypoint_shift_mm, 3).tolist(),
+                "keypoint_landmarks": (None if self.keypoint_landmarks is None
+                                       else list(self.keypoint_landmarks))}
 
 
 def _moved(view: CArmView, p: np.ndarray) -> CArmView:
@@ -155,6 +166,15 @@ def keypoint_shift(view_a: CArmView, point_a_px: Any, view_b: CArmView, point_b_
         return np.zeros(3)
     n /= norm
     return -float(np.dot(ob - oa, n)) * n
+
+
+def _landmarks_agreeing(va: CArmView, ga: CentrelineGraph, vb: CArmView, gb: CentrelineGraph) -> int:
+    """Pairs of the two graphs' landmarks (all against all) within ``LANDMARK_CHECK_TOL_PX``."""
+    pa, pb = ga.landmark_points, gb.landmark_points
+    if not (len(pa) and len(pb)):
+        return 0
+    err = reconstruction_error(va, pa[:, None, :], vb, pb[None, :, :]).error_px
+    return int(np.count_nonzero(err < LANDMARK_CHECK_TOL_PX))
 
 
 def _correspondences(va: CArmView, ga: CentrelineGraph, vb: CArmView, gb: CentrelineGraph,
@@ -278,18 +298,32 @@ def refine_geometry(
     kp_before = kp_error(view_b)
     if kp is not None and keypoint_tol_px is not None and kp_before > keypoint_tol_px:
         t = keypoint_shift(view_a, kp[0], view_b, kp[1])
-        if np.linalg.norm(t) <= max_keypoint_shift_mm:
-            start_b, shift = _moved(view_b, np.r_[0.0, 0.0, t]), t
-            out.warnings.append(
-                f"the stationary object's key point disagreed by {kp_before:.1f} px between the chosen "
-                "frames (the heart moved between the runs: breathing, or the patient or table): view B "
-                f"shifted by {np.linalg.norm(t):.1f} mm {np.round(t, 1).tolist()} (LPS) to make it agree; a "
-                "shift along the epipolar lines cannot be seen in two views and is not corrected")
-        else:
+        moved = _moved(view_b, np.r_[0.0, 0.0, t])
+        # The vessels' branch and end points must agree better with the shift: a key point that
+        # is two different points of the catheter (a tip the segmentation cut short in one view)
+        # disagrees while the vessels agree.
+        check = (_landmarks_agreeing(view_a, graph_a, view_b, graph_b),
+                 _landmarks_agreeing(view_a, graph_a, moved, graph_b))
+        out.keypoint_landmarks = check
+        if np.linalg.norm(t) > max_keypoint_shift_mm:
             out.warnings.append(
                 f"the stationary object's key point disagrees by {kp_before:.1f} px and would need view B "
                 f"shifted by {np.linalg.norm(t):.1f} mm (more than {max_keypoint_shift_mm:g} mm): taken to "
                 "be two different objects, not shifted")
+        elif check[1] <= check[0]:
+            out.warnings.append(
+                f"the stationary object's key point disagrees by {kp_before:.1f} px, but the vessels' branch "
+                f"and end points agree no better with view B shifted to fit it ({check[1]} against "
+                f"{check[0]} landmark pairs within {LANDMARK_CHECK_TOL_PX:g} px): taken to be two different "
+                "points of the object, not shifted")
+        else:
+            start_b, shift = moved, t
+            out.warnings.append(
+                f"the stationary object's key point disagreed by {kp_before:.1f} px between the chosen "
+                "frames (the heart moved between the runs: breathing, or the patient or table): view B "
+                f"shifted by {np.linalg.norm(t):.1f} mm {np.round(t, 1).tolist()} (LPS) to make it agree; a "
+                "shift along the epipolar lines cannot be seen in two views and is not corrected "
+                f"({check[1]} against {check[0]} landmark pairs within {LANDMARK_CHECK_TOL_PX:g} px)")
     out.keypoint_px = (kp_before, kp_error(start_b))
     out.keypoint_shift_mm = shift.copy()
     if np.any(shift):
