@@ -102,6 +102,8 @@ def test_keypoint_shift_brings_the_two_rays_of_a_moved_point_together():
         assert np.linalg.norm(t - expected) < 0.25, (t, expected)
     with pytest.raises(vc.ArgumentError, match="point_b_px"):
         vc.keypoint_shift(VIEW_A, (1.0, 2.0), VIEW_B, (np.nan, 2.0))
+    with pytest.raises(vc.ArgumentError, match="point_a_px"):
+        vc.keypoint_shift(VIEW_A, "left", VIEW_B, (1.0, 2.0))
 
 
 def test_a_heart_moved_between_the_runs_is_found_from_the_stationary_object():

@@ -153,11 +153,16 @@ def keypoint_shift(view_a: CArmView, point_a_px: Any, view_b: CArmView, point_b_
     """
     check_view(view_a, "view_a")
     check_view(view_b, "view_b")
-    pa = np.asarray(point_a_px, dtype=float).reshape(-1)
-    pb = np.asarray(point_b_px, dtype=float).reshape(-1)
-    for p, name in ((pa, "point_a_px"), (pb, "point_b_px")):
-        if p.shape != (2,) or not np.all(np.isfinite(p)):
-            raise ArgumentError(f"{name}: expected one finite (col, row) pixel, got {p.tolist()}")
+    pts = []
+    for p, name in ((point_a_px, "point_a_px"), (point_b_px, "point_b_px")):
+        try:
+            q = np.asarray(p, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise ArgumentError(f"{name}: expected one finite (col, row) pixel, got {p!r}") from None
+        if q.shape != (2,) or not np.all(np.isfinite(q)):
+            raise ArgumentError(f"{name}: expected one finite (col, row) pixel, got {q.tolist()}")
+        pts.append(q)
+    pa, pb = pts
     oa, da = view_a.ray(pa)
     ob, db = view_b.ray(pb)
     n = np.cross(da, db)
