@@ -148,6 +148,14 @@ def test_a_key_point_on_two_different_points_of_the_catheter_moves_nothing():
     assert any("agree no better" in w for w in rec.warnings)
     err, _ = cKDTree(TRUTH).query(np.vstack([b.points_mm for b in rec.ok_branches]))
     assert err.mean() < 0.5
+    # When no frame pair of the runs agrees (the phase matching's warning), the heart sat elsewhere
+    # at every pair and the shift is made without asking the landmarks.
+    ph = rec.phase
+    kp = (ph.keypoints_a["catheter"][ph.frame_a], ph.keypoints_b["catheter"][ph.frame_b])
+    told = vc.refine_geometry(VIEW_A, rec.graphs[0], VIEW_B, rec.graphs[1], keypoints=kp,
+                              keypoint_confirmed=True)
+    assert np.any(told.keypoint_shift_mm) and told.keypoint_px[1] < 0.5
+    assert any("no frame pair of the runs agrees" in w for w in told.warnings)
 
 
 def test_reconstructed_centrelines_lie_on_the_analytic_tree(recon):

@@ -137,6 +137,10 @@ class PhaseMatch:
     labelled_a, labelled_b : numpy.ndarray of bool, or None
         The frames whose labels were given (``match_phase``'s ``labelled_a``,
         ``labelled_b``); None: all.
+    least_error_mm : float
+        The smallest key point reconstruction error over the eligible pairs
+        (NaN without a stationary object); above :data:`DISAGREE_MM` no pair
+        agrees.
     """
 
     frame_a: int
@@ -164,6 +168,7 @@ class PhaseMatch:
     vessel_weight: float = 0.0
     labelled_a: np.ndarray | None = None
     labelled_b: np.ndarray | None = None
+    least_error_mm: float = float("nan")
 
     @property
     def basis(self) -> str:
@@ -1265,7 +1270,7 @@ def match_phase(
         fill_a=fill_a, fill_b=fill_b, window=window, ecg=ecg_diff is not None,
         consistency=consistency, vessel_weight=float(vessel_weight) if consistency is not None else 0.0,
         labelled_a=None if labelled_a is None else known_a.copy(),
-        labelled_b=None if labelled_b is None else known_b.copy(),
+        labelled_b=None if labelled_b is None else known_b.copy(), least_error_mm=least,
     )
 
 

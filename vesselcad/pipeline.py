@@ -30,7 +30,7 @@ from .geometry import CArmView
 from .io import XARun, load_run
 from .matching import BranchPair, GraphMatch, match_graphs
 from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
-from .phase import OBJECTS, PREFER_FILL, PhaseMatch, match_phase
+from .phase import DISAGREE_MM, OBJECTS, PREFER_FILL, PhaseMatch, match_phase
 from .refine import Refinement, refine_geometry
 from .segment import Segmenter
 from .splines import resample_by_arclength
@@ -1379,7 +1379,9 @@ def reconstruct(
         if phase.objects:
             obj = phase.objects[0]
             kp = (phase.keypoints_a[obj][fa], phase.keypoints_b[obj][fb])
-        refinement = refine_geometry(ra.view, ga, rb.view, gb, keypoints=kp)
+        # No frame pair's key point agrees: the heart sat elsewhere in run B at every pair.
+        confirmed = bool(np.isfinite(phase.least_error_mm) and phase.least_error_mm > DISAGREE_MM)
+        refinement = refine_geometry(ra.view, ga, rb.view, gb, keypoints=kp, keypoint_confirmed=confirmed)
         if refinement.applied:
             views = (refinement.view_a, refinement.view_b)
         warn += [f"refinement: {w}" for w in refinement.warnings]

@@ -239,6 +239,7 @@ def refine_geometry(
     rounds: int = 2,
     keypoint_tol_px: float | None = KEYPOINT_TOL_PX,
     max_keypoint_shift_mm: float = MAX_KEYPOINT_SHIFT_MM,
+    keypoint_confirmed: bool = False,
 ) -> Refinement:
     """Correct view B's pose relative to view A from the two centreline graphs.
 
@@ -272,6 +273,11 @@ def refine_geometry(
     max_keypoint_shift_mm : float
         A key point that would need a longer shift is taken to be two
         different objects: no shift, a warning.
+    keypoint_confirmed : bool
+        True when the phase matching found no frame pair whose key point
+        agrees (``PhaseMatch.least_error_mm`` above ``phase.DISAGREE_MM``):
+        the heart sat elsewhere at every pair, and the key point's shift is
+        made without asking the landmarks.
 
     Returns
     -------
@@ -315,7 +321,7 @@ def refine_geometry(
                 f"the stationary object's key point disagrees by {kp_before:.1f} px and would need view B "
                 f"shifted by {np.linalg.norm(t):.1f} mm (more than {max_keypoint_shift_mm:g} mm): taken to "
                 "be two different objects, not shifted")
-        elif check[1] <= check[0]:
+        elif check[1] <= check[0] and not keypoint_confirmed:
             out.warnings.append(
                 f"the stationary object's key point disagrees by {kp_before:.1f} px, but the vessels' branch "
                 f"and end points agree no better with view B shifted to fit it ({check[1]} against "
@@ -328,7 +334,8 @@ def refine_geometry(
                 "frames (the heart moved between the runs: breathing, or the patient or table): view B "
                 f"shifted by {np.linalg.norm(t):.1f} mm {np.round(t, 1).tolist()} (LPS) to make it agree; a "
                 "shift along the epipolar lines cannot be seen in two views and is not corrected "
-                f"({check[1]} against {check[0]} landmark pairs within {LANDMARK_CHECK_TOL_PX:g} px)")
+                f"({check[1]} against {check[0]} landmark pairs within {LANDMARK_CHECK_TOL_PX:g} px"
+                + ("; no frame pair of the runs agrees" if keypoint_confirmed else "") + ")")
     out.keypoint_px = (kp_before, kp_error(start_b))
     out.keypoint_shift_mm = shift.copy()
     if np.any(shift):
