@@ -27,7 +27,7 @@ from .matching import BranchPair, GraphMatch, LandmarkMatch, Unmatched, match_gr
 from .metrics import MaskReprojection, centreline_error, mask_reprojection, reprojection_error
 from .phase import PhaseError, PhaseMatch, match_phase
 from .pipeline import BranchResult, Reconstruction, ReconstructionError, reconstruct
-from .refine import Refinement, keypoint_shift, refine_geometry
+from .refine import Refinement, keypoint_shift, landmark_shift, refine_geometry
 from .segment import Segmenter
 from .tree import TreeBranch, VesselTree
 
@@ -81,6 +81,7 @@ __all__ = [
     "BranchResult",
     "refine_geometry",
     "keypoint_shift",
+    "landmark_shift",
     "Refinement",
     "VesselSolid",
     "cfd",

@@ -44,7 +44,7 @@ from .geometry import CArmView, check_view, reconstruction_error, triangulate
 from .matching import match_graphs
 from .splines import resample_by_arclength
 
-__all__ = ["Refinement", "keypoint_shift", "refine_geometry"]
+__all__ = ["Refinement", "keypoint_shift", "landmark_shift", "refine_geometry"]
 
 #: Tolerances (px) used to find correspondences on the unrefined geometry.
 RELAXED_LANDMARK_TOL_PX = 8.0
@@ -57,6 +57,16 @@ MAX_KEYPOINT_SHIFT_MM = 20.0
 #: The key point's shift is kept only if more pairs of the two graphs' landmarks (branch and end
 #: points, every pair) reconstruct within this error (px) with it than without it.
 LANDMARK_CHECK_TOL_PX = 2.0
+#: Where the key point gave no shift, view B is scanned across the epipolar lines (up to this many
+#: mm either way, in steps of ``LANDMARK_SCAN_STEP_MM``) for the shift at which most landmarks of
+#: view A have a landmark of the same kind in view B within ``LANDMARK_SCAN_TOL_PX``.
+LANDMARK_SCAN_MM = 10.0
+LANDMARK_SCAN_STEP_MM = 0.25
+LANDMARK_SCAN_TOL_PX = 1.5
+#: The scan's shift is made only if it gives this many more agreeing landmarks than no shift, and
+#: this many times as many.
+LANDMARK_SCAN_GAIN = 3
+LANDMARK_SCAN_RATIO = 1.4
 
 
 @dataclass
@@ -88,6 +98,13 @@ class Refinement:
         When the key point disagreed: the pairs of landmarks of the two
         graphs within ``LANDMARK_CHECK_TOL_PX`` on the files' geometry and with
         the key point's shift (the shift is kept only if the second is larger).
+    landmark_shift_mm : numpy.ndarray, shape (3,)
+        The part of ``offset_mm`` found by scanning view B across the epipolar
+        lines for the shift at which most landmarks agree
+        (:func:`landmark_shift`; zeros when not made).
+    landmark_counts : (int, int) or None
+        Where that scan ran: view A's landmarks with an agreeing landmark of
+        view B without the scan's shift and with it.
     landmarks, curve_points : int
         Number of landmark pairs and branch samples used.
     warnings : list of str
@@ -106,6 +123,8 @@ class Refinement:
     keypoint_px: tuple[float, float] = (float("nan"), float("nan"))
     keypoint_shift_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     keypoint_landmarks: tuple[int, int] | None = None
+    landmark_shift_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    landmark_counts: tuple[int, int] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         def r(x: float) -> float | None:
@@ -118,7 +137,9 @@ class Refinement:
                 "keypoint_px": [r(x) for x in self.keypoint_px],
                 "keypoint_shift_mm": np.round(self.keypoint_shift_mm, 3).tolist(),
                 "keypoint_landmarks": (None if self.keypoint_landmarks is None
-                                       else list(self.keypoint_landmarks))}
+                                       else list(self.keypoint_landmarks)),
+                "landmark_shift_mm": np.round(self.landmark_shift_mm, 3).tolist(),
+                "landmark_counts": None if self.landmark_counts is None else list(self.landmark_counts)}
 
 
 def _moved(view: CArmView, p: np.ndarray) -> CArmView:
@@ -171,6 +192,82 @@ def keypoint_shift(view_a: CArmView, point_a_px: Any, view_b: CArmView, point_b_
         return np.zeros(3)
     n /= norm
     return -float(np.dot(ob - oa, n)) * n
+
+
+def landmark_shift(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView, graph_b: CentrelineGraph,
+                   *, max_mm: float = LANDMARK_SCAN_MM, step_mm: float = LANDMARK_SCAN_STEP_MM,
+                   tol_px: float = LANDMARK_SCAN_TOL_PX) -> tuple[np.ndarray, int, int]:
+    """The shift of view B across the epipolar lines at which most landmarks of the two views agree.
+
+    A heart that sits elsewhere in run B than in run A (breathing between two
+    runs, the table or the patient moved) moves every landmark of view B off
+    the epipolar lines of its partner in view A. Two views see such a shift
+    only across the epipolar lines: along the direction ``u`` perpendicular to
+    the baseline (source A to source B) and to the mean viewing direction.
+    View B's isocentre is moved along ``u`` from ``-max_mm`` to ``max_mm`` in
+    steps of ``step_mm``; at each shift every landmark of view A counts when a
+    landmark of the same kind (branch or end point) in view B reconstructs
+    with it within ``tol_px`` (paper §2.3). Branch points are points of the
+    anatomy, not of the picture: the right shift makes many of them agree at
+    once, a wrong one only those that fall on each other's epipolar lines by
+    chance.
+
+    Parameters
+    ----------
+    view_a, view_b : CArmView
+    graph_a, graph_b : CentrelineGraph
+    max_mm, step_mm : float
+        Range and step of the scan (mm at the isocentre).
+    tol_px : float
+        Reconstruction error (px) within which two landmarks agree.
+
+    Returns
+    -------
+    shift : numpy.ndarray, shape (3,)
+        The shift (LPS mm) to add to view B's ``offset_mm``: the middle of the
+        widest run of steps with the largest count (the one nearest to no
+        shift where runs tie).
+    count_none, count_best : int
+        View A's landmarks that agree without the shift and with it.
+
+    Raises
+    ------
+    ArgumentError
+        A view or graph of the wrong type, or a non-positive range, step or tolerance.
+    """
+    check_view(view_a, "view_a")
+    check_view(view_b, "view_b")
+    for g, name in ((graph_a, "graph_a"), (graph_b, "graph_b")):
+        if not isinstance(g, CentrelineGraph):
+            raise ArgumentError(f"{name}: expected a CentrelineGraph, got {type(g).__name__}")
+    for val, name in ((max_mm, "max_mm"), (step_mm, "step_mm"), (tol_px, "tol_px")):
+        if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
+            raise ArgumentError(f"{name}: expected a positive number, got {val!r}")
+    pa, pb = graph_a.landmark_points, graph_b.landmark_points
+    if not (len(pa) and len(pb)):
+        return np.zeros(3), 0, 0
+    ka = np.array([lm.kind for lm in graph_a.landmarks])
+    kb = np.array([lm.kind for lm in graph_b.landmarks])
+    same = ka[:, None] == kb[None, :]
+    u = np.cross(view_b.source - view_a.source, view_a.detector_direction + view_b.detector_direction)
+    norm = float(np.linalg.norm(u))
+    if norm < 1e-9:
+        return np.zeros(3), 0, 0
+    u /= norm
+    n = int(np.floor(max_mm / step_mm))
+    steps = np.arange(-n, n + 1) * step_mm
+    counts = np.empty(len(steps), dtype=np.int64)
+    for k, s in enumerate(steps):
+        err = reconstruction_error(view_a, pa[:, None, :], _moved(view_b, np.r_[0.0, 0.0, s * u]),
+                                   pb[None, :, :]).error_px
+        counts[k] = np.count_nonzero(np.where(same, err, np.inf).min(axis=1) < tol_px)
+    best = counts.max()
+    # Runs of steps at the best count: the widest one, then the one nearest to no shift.
+    on = np.r_[False, counts == best, False].astype(np.int8)
+    starts, ends = np.flatnonzero(np.diff(on) == 1), np.flatnonzero(np.diff(on) == -1)
+    mids = 0.5 * (steps[starts] + steps[ends - 1])
+    k = min(range(len(starts)), key=lambda i: (-(ends[i] - starts[i]), abs(mids[i])))
+    return mids[k] * u, int(counts[n]), int(best)
 
 
 def _landmarks_agreeing(va: CArmView, ga: CentrelineGraph, vb: CArmView, gb: CentrelineGraph) -> int:
@@ -240,6 +337,7 @@ def refine_geometry(
     keypoint_tol_px: float | None = KEYPOINT_TOL_PX,
     max_keypoint_shift_mm: float = MAX_KEYPOINT_SHIFT_MM,
     keypoint_confirmed: bool = False,
+    landmark_scan: bool = True,
 ) -> Refinement:
     """Correct view B's pose relative to view A from the two centreline graphs.
 
@@ -278,6 +376,12 @@ def refine_geometry(
         agrees (``PhaseMatch.least_error_mm`` above ``phase.DISAGREE_MM``):
         the heart sat elsewhere at every pair, and the key point's shift is
         made without asking the landmarks.
+    landmark_scan : bool
+        Where the key point gave no shift, scan view B across the epipolar
+        lines for the shift at which most landmarks agree
+        (:func:`landmark_shift`) and make it when it gives at least
+        ``LANDMARK_SCAN_GAIN`` more agreeing landmarks than none and
+        ``LANDMARK_SCAN_RATIO`` times as many (default True).
 
     Returns
     -------
@@ -292,6 +396,9 @@ def refine_geometry(
     if keypoint_tol_px is not None and not (isinstance(keypoint_tol_px, (int, float))
                                             and np.isfinite(keypoint_tol_px) and keypoint_tol_px >= 0):
         raise ArgumentError(f"keypoint_tol_px: expected a number >= 0 or None, got {keypoint_tol_px!r}")
+    for flag, name in ((keypoint_confirmed, "keypoint_confirmed"), (landmark_scan, "landmark_scan")):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise ArgumentError(f"{name}: expected True or False, got {flag!r}")
     kp = None
     if keypoints is not None:
         kp = (np.asarray(keypoints[0], float).reshape(2), np.asarray(keypoints[1], float).reshape(2))
@@ -338,6 +445,20 @@ def refine_geometry(
                 + ("; no frame pair of the runs agrees" if keypoint_confirmed else "") + ")")
     out.keypoint_px = (kp_before, kp_error(start_b))
     out.keypoint_shift_mm = shift.copy()
+    if landmark_scan and not np.any(shift):
+        # No shift from the key point (it agrees, or it was two different points): the vessels'
+        # landmarks may still show a heart moved across the epipolar lines.
+        t, n0, n1 = landmark_shift(view_a, graph_a, view_b, graph_b)
+        out.landmark_counts = (n0, n1)
+        if n1 >= max(n0 + LANDMARK_SCAN_GAIN, LANDMARK_SCAN_RATIO * n0) and np.any(t):
+            start_b, shift = _moved(view_b, np.r_[0.0, 0.0, t]), t
+            out.landmark_shift_mm = t.copy()
+            out.keypoint_px = (kp_before, kp_error(start_b))
+            out.warnings.append(
+                f"the vessels' branch and end points agree best with view B shifted by "
+                f"{np.linalg.norm(t):.1f} mm {np.round(t, 1).tolist()} (LPS) across the epipolar lines ({n1} "
+                f"against {n0} of view A's {len(graph_a.landmarks)} landmarks within "
+                f"{LANDMARK_SCAN_TOL_PX:g} px): the heart moved between the runs; shifted")
     if np.any(shift):
         out.applied, out.view_b, out.offset_mm = True, start_b, shift.copy()
 
