@@ -263,7 +263,11 @@ def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_
         f"view B rotated {ref['rotation_deg']}°, isocentre shifted {ref['offset_mm']} mm"
         + ("" if not any(ref.get("keypoint_shift_mm") or ()) else
            f" ({ref['keypoint_shift_mm']} mm of it for the stationary object's key point, which disagreed by "
-           f"{ref['keypoint_px'][0]} px on the files' geometry)"))
+           f"{ref['keypoint_px'][0]} px on the files' geometry)")
+        + ("" if not any(ref.get("landmark_shift_mm") or ()) else
+           f" ({ref['landmark_shift_mm']} mm of it across the epipolar lines, where "
+           f"{ref['landmark_counts'][1]} instead of {ref['landmark_counts'][0]} of view A's branch and end "
+           "points agree with view B's)"))
     solid = report["solid"]
     solid_txt = "not built" if solid is None else (
         f"valid {solid['valid']}, watertight {solid['watertight']}, volume {solid['volume_mm3']:.1f} mm³"
