@@ -19,6 +19,7 @@ from analytic_tree import RADIUS_MM, TREE
 from scipy.spatial import cKDTree
 
 import vesselcad as vc
+import vesselcad.refine as refine_module
 from vesselcad.cli import main
 from vesselcad.metrics import distance_to_polyline
 from vesselcad.pipeline import ReconstructionError, reconstruct
@@ -132,7 +133,7 @@ def test_a_heart_moved_between_the_runs_is_found_from_the_stationary_object():
         reconstruct(ra, rb, labels=(la, lb), solid=False, refine=False)
 
 
-def test_a_key_point_on_two_different_points_of_the_catheter_moves_nothing():
+def test_a_key_point_on_two_different_points_of_the_catheter_moves_nothing(monkeypatch):
     # The files' geometry exact, but view B's catheter cut 9 mm short of its tip (a tip the
     # segmentation lost): the key points disagree by more than 2 px while every vessel agrees, so
     # the branch and end points agree no better with a shift, and none is made.
@@ -149,9 +150,18 @@ def test_a_key_point_on_two_different_points_of_the_catheter_moves_nothing():
     err, _ = cKDTree(TRUTH).query(np.vstack([b.points_mm for b in rec.ok_branches]))
     assert err.mean() < 0.5
     # When no frame pair of the runs agrees (the phase matching's warning), the heart sat elsewhere
-    # at every pair and the shift is made without asking the landmarks.
+    # at every pair and the shift is made unless the landmarks clearly oppose it: here 1 landmark
+    # pair agrees with it against 8 without, so not even then.
     ph = rec.phase
     kp = (ph.keypoints_a["catheter"][ph.frame_a], ph.keypoints_b["catheter"][ph.frame_b])
+    told = vc.refine_geometry(VIEW_A, rec.graphs[0], VIEW_B, rec.graphs[1], keypoints=kp,
+                              keypoint_confirmed=True)
+    assert told.keypoint_landmarks[1] < 0.6 * told.keypoint_landmarks[0]
+    assert not np.any(told.keypoint_shift_mm)
+    assert any("although no frame pair of the runs agrees" in w for w in told.warnings)
+    # A weaker opposition (as 8 against 12 landmark pairs on a phantom case of 15 frames) is
+    # overruled: with the share lowered below this case's, the shift is made.
+    monkeypatch.setattr(refine_module, "KEYPOINT_CONFIRMED_SHARE", 0.1)
     told = vc.refine_geometry(VIEW_A, rec.graphs[0], VIEW_B, rec.graphs[1], keypoints=kp,
                               keypoint_confirmed=True)
     assert np.any(told.keypoint_shift_mm) and told.keypoint_px[1] < 0.5

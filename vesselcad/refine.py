@@ -23,7 +23,12 @@ mm, mostly cranio-caudally), or the patient or table moved between the runs.
 Two views see such a shift only across the epipolar lines, and the matching
 would otherwise pair whatever agrees with the wrong geometry. So view B is
 first shifted by the shortest move that makes the two rays of the key point
-meet (:func:`keypoint_shift`), and everything else starts from there.
+meet (:func:`keypoint_shift`), and everything else starts from there. Where
+the key point gives no shift (it agrees, there is none, or the landmarks do
+not back it), the vessels' own branch and end points are asked: view B is
+scanned across the epipolar lines for the shift at which most of them agree
+(:func:`landmark_shift`), and moved there when that shift makes clearly more
+of them agree than none.
 
 Correspondences come from :func:`vesselcad.match_graphs` with relaxed
 tolerances, and are found again after each round. The result is kept only
@@ -57,6 +62,10 @@ MAX_KEYPOINT_SHIFT_MM = 20.0
 #: The key point's shift is kept only if more pairs of the two graphs' landmarks (branch and end
 #: points, every pair) reconstruct within this error (px) with it than without it.
 LANDMARK_CHECK_TOL_PX = 2.0
+#: When no frame pair of the runs agrees (``keypoint_confirmed``), the key point's shift is made
+#: unless fewer than this share of the landmark pairs agree with it as without it (a key point
+#: that is two different points of the catheter in every frame: the vessels say so clearly).
+KEYPOINT_CONFIRMED_SHARE = 0.6
 #: Where the key point gave no shift, view B is scanned across the epipolar lines (up to this many
 #: mm either way, in steps of ``LANDMARK_SCAN_STEP_MM``) for the shift at which most landmarks of
 #: view A have a landmark of the same kind in view B within ``LANDMARK_SCAN_TOL_PX``.
@@ -375,7 +384,9 @@ def refine_geometry(
         True when the phase matching found no frame pair whose key point
         agrees (``PhaseMatch.least_error_mm`` above ``phase.DISAGREE_MM``):
         the heart sat elsewhere at every pair, and the key point's shift is
-        made without asking the landmarks.
+        made unless the landmarks clearly oppose it (fewer than
+        ``KEYPOINT_CONFIRMED_SHARE`` of the landmark pairs agree with it as
+        without it).
     landmark_scan : bool
         Where the key point gave no shift, scan view B across the epipolar
         lines for the shift at which most landmarks agree
@@ -428,12 +439,14 @@ def refine_geometry(
                 f"the stationary object's key point disagrees by {kp_before:.1f} px and would need view B "
                 f"shifted by {np.linalg.norm(t):.1f} mm (more than {max_keypoint_shift_mm:g} mm): taken to "
                 "be two different objects, not shifted")
-        elif check[1] <= check[0] and not keypoint_confirmed:
+        elif check[1] <= check[0] and not (keypoint_confirmed
+                                           and check[1] >= KEYPOINT_CONFIRMED_SHARE * check[0]):
             out.warnings.append(
                 f"the stationary object's key point disagrees by {kp_before:.1f} px, but the vessels' branch "
                 f"and end points agree no better with view B shifted to fit it ({check[1]} against "
-                f"{check[0]} landmark pairs within {LANDMARK_CHECK_TOL_PX:g} px): taken to be two different "
-                "points of the object, not shifted")
+                f"{check[0]} landmark pairs within {LANDMARK_CHECK_TOL_PX:g} px"
+                + (", although no frame pair of the runs agrees" if keypoint_confirmed else "")
+                + "): taken to be two different points of the object, not shifted")
         else:
             start_b, shift = moved, t
             out.warnings.append(
