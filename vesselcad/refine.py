@@ -46,7 +46,7 @@ from scipy.optimize import least_squares
 from .centreline2d import CentrelineGraph
 from .errors import ArgumentError
 from .geometry import CArmView, check_view, reconstruction_error, triangulate
-from .matching import match_graphs
+from .matching import _check_graph, match_graphs
 from .splines import resample_by_arclength
 
 __all__ = ["Refinement", "keypoint_shift", "landmark_shift", "refine_geometry"]
@@ -246,9 +246,7 @@ def landmark_shift(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     """
     check_view(view_a, "view_a")
     check_view(view_b, "view_b")
-    for g, name in ((graph_a, "graph_a"), (graph_b, "graph_b")):
-        if not isinstance(g, CentrelineGraph):
-            raise ArgumentError(f"{name}: expected a CentrelineGraph, got {type(g).__name__}")
+    graph_a, graph_b = _check_graph(graph_a, "graph_a"), _check_graph(graph_b, "graph_b")
     for val, name in ((max_mm, "max_mm"), (step_mm, "step_mm"), (tol_px, "tol_px")):
         if not (isinstance(val, (int, float)) and np.isfinite(val) and val > 0):
             raise ArgumentError(f"{name}: expected a positive number, got {val!r}")
