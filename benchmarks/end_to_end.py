@@ -74,16 +74,18 @@ STAGES = ("segmentation", "phase", "graphs", "refinement", "matching", "centreli
 
 def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
              segmenter: vc.Segmenter | None = None, tta: str = "chosen",
-             frame_search: str = "all", synchronized: bool = False, fps: float = 15.0) -> dict:
+             frame_search: str = "all", synchronized: bool = False, fps: float = 15.0,
+             size: int = 512) -> dict:
     base, _, option = variant.partition("/")
     mis = 1.5 if base.endswith("1.5deg") else 0.0
-    case = generate_case(seed, kind, n_frames, miscalibration_deg=mis, synchronized=synchronized, fps=fps)
+    case = generate_case(seed, kind, n_frames, miscalibration_deg=mis, synchronized=synchronized, fps=fps,
+                         rows=size, cols=size)
     d = workdir / f"{seed}_{variant.replace('/', '_')}"
     paths = write_case(case, d)
     labels = None if base == "model" else (case.run_a.labels, case.run_b.labels)
     objects = "vessels" if option == "vessels" else "auto"
     t0 = time.perf_counter()
-    row = {"seed": seed, "anatomy": kind, "frames": n_frames, "fps": fps, "variant": variant}
+    row = {"seed": seed, "anatomy": kind, "frames": n_frames, "fps": fps, "size": size, "variant": variant}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -211,9 +213,15 @@ def main() -> None:
                     help="frame rate of both runs (default 15; real runs are acquired at 7.5-30)")
     ap.add_argument("--frames", type=int, metavar="N",
                     help="frames per run (default: 40-60, varying from case to case; real runs hold 15-60)")
+    ap.add_argument("--size", type=int, default=512, metavar="PX",
+                    help="rows and columns of the rendered runs (default 512; the same 140 mm field at "
+                    "the isocentre in finer pixels for more, as 1024² exports; reconstruct reduces "
+                    "frames larger than its max_side, 512)")
     args = ap.parse_args()
     if not args.fps > 0:
         ap.error(f"--fps: expected a positive frame rate, got {args.fps}")
+    if args.size < 128:
+        ap.error(f"--size: expected at least 128 px, got {args.size}")
     if args.frames is not None and args.frames < 2:
         ap.error(f"--frames: expected at least 2 frames per run, got {args.frames}")
     variants = args.variants.split(",")
@@ -230,7 +238,8 @@ def main() -> None:
             n_frames = 40 + (i * 7) % 21 if args.frames is None else args.frames
             for v in variants:
                 r = run_case(seed, kind, n_frames, v, Path(tmp), segmenter, tta=args.tta,
-                             frame_search=args.frame_search, synchronized=args.synchronized, fps=args.fps)
+                             frame_search=args.frame_search, synchronized=args.synchronized, fps=args.fps,
+                             size=args.size)
                 rows.append(r)
                 t = r.get("truth", {})
                 print(f"seed {seed} {kind} {n_frames} frames {v}: {r['status'][:80]}; 3D mean "
@@ -239,7 +248,7 @@ def main() -> None:
                       f"{r['seconds']:.1f} s", file=sys.stderr, flush=True)
     sync = "synchronized" if args.synchronized else "unsynchronized"
     frames = "40-60" if args.frames is None else str(args.frames)
-    print(f"# end to end: {args.cases} phantom cases x {len(variants)} variants, 512², {sync} "
+    print(f"# end to end: {args.cases} phantom cases x {len(variants)} variants, {args.size}², {sync} "
           f"{frames} frames at {args.fps:g} fps, model variant with mirror TTA of {args.tta} frames, "
           f"frame search {args.frame_search}")
     print(f"# {platform.platform()}, python {platform.python_version()}, {os.cpu_count()} CPUs, "

@@ -146,3 +146,38 @@ def test_bad_points_are_rejected():
         view.project([[1.0, 2.0]])
     with pytest.raises(vc.ArgumentError, match="view_a"):
         vc.triangulate("not a view", [[0, 0]], view, [[0, 0]])
+
+
+@pytest.mark.parametrize("rows, cols, spacing", [(1024, 1024, (0.2, 0.2)), (768, 1000, (0.25, 0.2))])
+def test_a_run_reduced_to_max_side_sees_the_same_points(rows, cols, spacing):
+    # Bright 6x6 px squares drawn at the projections of three 3D points; after area averaging
+    # to at most 512 px a side, each square's intensity-weighted centre lies where the resized
+    # view projects the same 3D point (the detector kept, pixel centres onto pixel centres).
+    view = vc.CArmView(25.0, -10.0, 1100.0, 760.0, spacing, rows, cols)
+    pts = np.array([[0.0, 0.0, 0.0], [30.0, -20.0, 10.0], [-25.0, 35.0, -15.0]])
+    frame = np.zeros((rows, cols), np.uint16)
+    corners = np.round(view.project(pts) - 2.5).astype(int)  # a 6-px square centred on the point
+    for c, r in corners:
+        frame[r:r + 6, c:c + 6] = 4000
+    centres = corners + 2.5  # the squares' true centres (px of the full frame)
+    run = vc.XARun(frames=frame[None], view=view, frame_times_ms=[0.0], bits_stored=12)
+    small = run.resampled(512)
+    assert max(small.frames.shape[1:]) == 512 and small.frames.dtype == np.uint16
+    assert small.view.rows * small.view.pixel_spacing_mm[0] == pytest.approx(rows * spacing[0])
+    assert small.view.cols * small.view.pixel_spacing_mm[1] == pytest.approx(cols * spacing[1])
+    f = small.frames[0].astype(float)
+    scale = np.array([small.view.cols / cols, small.view.rows / rows])
+    # the same 3D points through the resized view, plus the squares' rounding, scaled
+    got = small.view.project(pts) + (centres - view.project(pts)) * scale
+    for (c, r) in got:
+        r0, c0 = int(r) - 6, int(c) - 6
+        win = f[r0:r0 + 14, c0:c0 + 14]
+        yy, xx = np.mgrid[r0:r0 + 14, c0:c0 + 14]
+        assert (xx * win).sum() / win.sum() == pytest.approx(c, abs=0.02)
+        assert (yy * win).sum() / win.sum() == pytest.approx(r, abs=0.02)
+    assert f.sum() * (rows * cols) / f.size == pytest.approx(3 * 36 * 4000, rel=1e-3)  # area kept
+    assert run.resampled(2048) is run  # already small enough
+    with pytest.raises(vc.ArgumentError, match="max_side"):
+        run.resampled(8)
+    with pytest.raises(vc.GeometryError, match="rows"):
+        view.resized(0, 10)

@@ -1005,3 +1005,43 @@ def test_cli_check_measures_a_written_tree_against_mask_files(tmp_path, capsys):
     assert "none.png: no such file" in capsys.readouterr().err
     assert main(["check", str(tmp_path / "nowhere"), "--mask-a", "a", "--mask-b", "b"]) == 2
     assert "no report.json" in capsys.readouterr().err
+
+
+def test_runs_of_1024_px_are_reconstructed_at_the_working_size(tmp_path, capsys):
+    # The fixture's tree exported as 1024-px frames of the same field (0.15 mm pixels at the
+    # detector instead of 0.4 at 384 px): reconstruct works on them reduced to 512 px (0.3 mm)
+    # and the tree lies on the analytic one as closely as from the 384-px runs.
+    big = [vc.CArmView(v.primary_deg, v.secondary_deg, v.sid_mm, v.sod_mm, (0.15, 0.15), 1024, 1024)
+           for v in (VIEW_A, VIEW_B)]
+    (ra, la), (rb, lb) = run_of(big[0]), run_of(big[1])
+    rec = reconstruct(ra, rb, labels=(la, lb), solid=False)
+    assert [(v.rows, v.cols) for v in rec.views] == [(512, 512)] * 2
+    assert rec.views[0].pixel_spacing_mm == pytest.approx((0.3, 0.3))
+    assert [(v.rows, v.cols) for v in rec.header_views] == [(1024, 1024)] * 2
+    assert rec.frames[0].shape == rec.labels[0].shape == (512, 512)
+    assert any("1024x1024 px reduced to 512x512 px" in w for w in rec.warnings)
+    pts = np.vstack([b.points_mm for b in rec.ok_branches])
+    err, _ = cKDTree(TRUTH).query(pts)
+    assert err.mean() < 0.5 and np.percentile(err, 95) < 2.5
+    cov, _ = cKDTree(pts).query(TRUTH)
+    assert np.mean(cov <= 1.0) > 0.75
+    names = list(TREE)
+    owner = np.repeat(np.arange(len(names)), 400)
+    for b in rec.ok_branches:  # the vessels' widths survive the reduction of the labels
+        _, i = cKDTree(TRUTH).query(b.points_mm)
+        assert np.median(np.abs(b.radius_mm - np.array([RADIUS_MM[names[k]] for k in owner[i]]))) < 0.35
+    # masks of the frames as read (1024 px) measure the tree through the views resized to them
+    fa, fb = rec.phase.frame_a, rec.phase.frame_b
+    m = vc.mask_reprojection(rec, rec.views, [la[fa] == 1, lb[fb] == 1])
+    assert m.mean_mm < 0.1 and m.on_vessel_share > 0.95
+    with pytest.raises(vc.ArgumentError, match="masks"):
+        vc.mask_reprojection(rec, rec.views, [la[fa, :700] == 1, lb[fb] == 1])
+    # the CLI's check takes masks at the files' size, from what reconstruct wrote
+    rec.write(tmp_path)
+    np.save(tmp_path / "a.npy", la[fa] == 1)
+    np.save(tmp_path / "b.npy", lb[fb] == 1)
+    assert main(["check", str(tmp_path), "--mask-a", str(tmp_path / "a.npy"), "--mask-b",
+                 str(tmp_path / "b.npy"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["mean_mm"] == pytest.approx(m.mean_mm, abs=1e-4)
+    with pytest.raises(vc.ArgumentError, match="max_side"):
+        reconstruct(ra, rb, labels=(la, lb), max_side=10)

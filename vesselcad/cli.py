@@ -91,7 +91,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0 if rec.tree is not None else 3
 
 
-def _read_mask(path: str, name: str, shape: tuple[int, int]) -> np.ndarray:
+def _read_mask(path: str, name: str, shape: tuple[int, int], file_shape: tuple[int, int] | None = None
+               ) -> np.ndarray:
     """A vessel mask from an image file (grey > 127 is vessel) or a .npy array (non-zero)."""
     import cv2
 
@@ -110,9 +111,10 @@ def _read_mask(path: str, name: str, shape: tuple[int, int]) -> np.ndarray:
         if img is None:
             raise InputFileError(f"{name} {p}: not an image file OpenCV can read")
         mask = img > 127
-    if mask.shape != shape:
+    if mask.shape != shape and mask.shape != file_shape:
+        also = "" if file_shape in (None, shape) else f" ({file_shape[0]} x {file_shape[1]} in the file)"
         raise InputFileError(f"{name} {p}: shape {mask.shape}, but the chosen frame has {shape[0]} rows "
-                             f"and {shape[1]} columns")
+                             f"and {shape[1]} columns{also}")
     return mask
 
 
@@ -128,13 +130,16 @@ def _cmd_check(args: argparse.Namespace) -> int:
         report = json.loads((out / "report.json").read_text(encoding="utf-8"))
         views = [CArmView.from_dict(report[k]["used"], source=f"{out / 'report.json'} {k}")
                  for k in ("view_a", "view_b")]
+        # the frames' size in the files (reconstruct may have worked on them reduced: max_side)
+        sizes = [(int(h["rows"]), int(h["cols"])) if isinstance(h := report[k].get("header"), dict) else None
+                 for k in ("view_a", "view_b")]
     except FileNotFoundError:
         raise InputFileError(f"{out}: no report.json (the folder `vesselcad reconstruct` wrote)") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise InputFileError(f"{out / 'report.json'}: not a vesselcad report ({exc})") from None
     tree = VesselTree.from_json(out / "centrelines.json")
-    masks = [_read_mask(path, f"--mask-{k}", (v.rows, v.cols))
-             for k, path, v in zip("ab", (args.mask_a, args.mask_b), views, strict=True)]
+    masks = [_read_mask(path, f"--mask-{k}", (v.rows, v.cols), size)
+             for k, path, v, size in zip("ab", (args.mask_a, args.mask_b), views, sizes, strict=True)]
     m = mask_reprojection(tree, views, masks)
     result = {"frames": [report.get("frame_a"), report.get("frame_b")],
               "masks": [str(args.mask_a), str(args.mask_b)], **m.to_dict()}

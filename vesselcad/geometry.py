@@ -233,6 +233,49 @@ class CArmView:
             self._cache["P"] = np.vstack([row0, row1, last])
         return self._cache["P"].copy()
 
+    def resized(self, rows: int, cols: int) -> CArmView:
+        """The same C-arm and detector sampled on a grid of ``rows`` x ``cols`` pixels.
+
+        The detector's extent is kept (``rows * spacing`` along each axis), so a
+        frame resampled to that size by area averaging (pixel centres mapped
+        onto pixel centres, as ``cv2.resize`` with ``INTER_AREA`` does) is seen
+        through the returned view as the original frame is through this one.
+
+        Parameters
+        ----------
+        rows, cols : int
+            The new image size, each at least 1.
+
+        Returns
+        -------
+        CArmView
+            A view whose pixel spacing is scaled by ``self.rows / rows`` and
+            ``self.cols / cols``; angles, distances and offset unchanged.
+
+        Raises
+        ------
+        GeometryError
+            For a size that is not a whole number >= 1.
+
+        Examples
+        --------
+        >>> view = CArmView(primary_deg=30.0, secondary_deg=0.0, sid_mm=1100.0,
+        ...                 sod_mm=750.0, pixel_spacing_mm=(0.2, 0.2), rows=1024, cols=1024)
+        >>> half = view.resized(512, 512)
+        >>> half.pixel_spacing_mm, half.project([0.0, 0.0, 0.0])
+        ((0.4, 0.4), array([255.5, 255.5]))
+        """
+        size = []
+        for name, n in (("rows", rows), ("cols", cols)):
+            if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
+                raise GeometryError(f"{name}: expected a whole number >= 1, got {n!r}")
+            size.append(int(n))
+        dr, dc = self.pixel_spacing_mm
+        return CArmView(primary_deg=self.primary_deg, secondary_deg=self.secondary_deg,
+                        sid_mm=self.sid_mm, sod_mm=self.sod_mm,
+                        pixel_spacing_mm=(dr * self.rows / size[0], dc * self.cols / size[1]),
+                        rows=size[0], cols=size[1], offset_mm=self.offset_mm)
+
     # --------------------------------------------------------------- mappings
     def project(self, points_mm: Any) -> np.ndarray:
         """Project 3D points onto the image.

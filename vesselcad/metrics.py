@@ -239,6 +239,15 @@ def _curve_samples(curves: Any, step_mm: float) -> np.ndarray:
     return np.vstack(parts)
 
 
+def _same_detector(shape: tuple[int, ...], view: CArmView) -> bool:
+    """Whether an image of ``shape`` is the view's frame before ``XARun.resampled`` reduced it."""
+    h, w = (int(x) for x in shape)
+    if max(h, w) <= max(view.rows, view.cols):
+        return False
+    s = max(h, w) / max(view.rows, view.cols)
+    return (max(1, round(h / s)), max(1, round(w / s))) == (view.rows, view.cols)
+
+
 def mask_reprojection(curves: Any, views: CArmView | list[CArmView], masks: Any,
                       step_mm: float = 0.5) -> MaskReprojection:
     """Reprojection of a reconstruction against independent vessel masks.
@@ -261,8 +270,10 @@ def mask_reprojection(curves: Any, views: CArmView | list[CArmView], masks: Any,
         (``Reconstruction.views``; report.json's projection matrices).
     masks : array_like (H, W), or a list of them (one per view)
         Vessel pixels (bool, or non-zero = vessel), ``(H, W) == (view.rows,
-        view.cols)``; for a label image of the segmentation classes pass
-        ``labels == 1``.
+        view.cols)``, or the size of the frame as read where ``reconstruct``
+        worked on it reduced (``max_side``; the view is then
+        :meth:`CArmView.resized` to the mask); for a label image of the
+        segmentation classes pass ``labels == 1``.
     step_mm : float
         Sampling step along the 3D curves (0.5 mm, as the other measures).
 
@@ -294,8 +305,10 @@ def mask_reprojection(curves: Any, views: CArmView | list[CArmView], masks: Any,
     for k, (view, mask) in enumerate(zip(views, masks, strict=True)):
         m = np.asarray(mask)
         if m.shape != (view.rows, view.cols):
-            raise ArgumentError(f"masks[{k}]: expected shape ({view.rows}, {view.cols}) (the view's "
-                                f"rows, cols), got {m.shape}")
+            if m.ndim != 2 or not _same_detector(m.shape, view):
+                raise ArgumentError(f"masks[{k}]: expected shape ({view.rows}, {view.cols}) (the view's "
+                                    f"rows, cols) or a multiple of it, got {m.shape}")
+            view = view.resized(*m.shape)  # a mask of the frame as read, before reconstruct reduced it
         m = m.astype(bool)
         with warnings.catch_warnings():  # the mask's loops and crossings are not the user's concern here
             warnings.simplefilter("ignore", VesselcadWarning)

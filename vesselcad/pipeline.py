@@ -150,6 +150,13 @@ COARSE_STRIDE = 1
 COARSE_KEEP = 0.75
 COARSE_TOP = 12
 COARSE_REACH = 2
+#: ``reconstruct(max_side=...)``: frames with more rows or columns than this are area averaged down
+#: to it before anything else (``XARun.resampled``). The method's pixel parameters (skeleton
+#: pruning, landmark and branch tolerances, the continuation's steps, the segmentation network's
+#: training scales) are set for cine of 512 pixels a side at about 0.27 mm per pixel at the
+#: isocentre; a 1024-pixel export of the same field gave phantom trees several millimetres off
+#: and took twice as long (docs/results.md, 2026-12-06).
+WORK_MAX_SIDE = 512
 
 
 class ReconstructionError(VesselcadError, RuntimeError):
@@ -441,6 +448,27 @@ def _check_labels(labels: Any, run: XARun, name: str) -> np.ndarray:
         raise ArgumentError(f"{name}: expected integer labels of shape {run.frames.shape} (one per frame of "
                             f"the run), got {arr.dtype} {arr.shape}")
     return arr.astype(np.uint8, copy=False)
+
+
+def _resampled_labels(labels: np.ndarray, view: CArmView) -> np.ndarray:
+    """Labels (N, H, W) reduced to the view's size: each pixel the class covering most of it.
+
+    Ties go to the higher class (a vessel half inside a pixel keeps it), so a
+    vessel keeps its width in mm; labels already at the view's size are returned as they are.
+    """
+    import cv2
+
+    n, h, w = labels.shape
+    if (h, w) == (view.rows, view.cols):
+        return labels
+    out = np.zeros((n, view.rows, view.cols), np.uint8)
+    best = np.full(out.shape, -1.0, np.float32)
+    for c in np.unique(labels):
+        share = np.stack([cv2.resize((f == c).astype(np.float32), (view.cols, view.rows),
+                                     interpolation=cv2.INTER_AREA) for f in labels])
+        take = share >= best - 1e-6  # classes come in rising order: ties to the higher one
+        out[take], best[take] = c, share[take]
+    return out
 
 
 def _radius_along(points: np.ndarray, view: CArmView, pts_px: np.ndarray, rad_px: np.ndarray) -> np.ndarray:
@@ -1181,6 +1209,7 @@ def reconstruct(
     tta: str | bool = "chosen",
     frame_search: str = "all",
     off_surface_sigmas: float | None = OFF_SURFACE_SIGMAS,
+    max_side: int | None = WORK_MAX_SIDE,
 ) -> Reconstruction:
     """3D vessel tree from two X-ray angiography runs of the same vessels (the whole method).
 
@@ -1258,6 +1287,15 @@ def reconstruct(
         than ``OFF_SURFACE_END_SIGMAS`` times its spread (at least 2 mm).
         Default 4; None keeps every branch whole (vessels that do not run on
         one surface).
+    max_side : int or None
+        Runs whose frames have more rows or columns than this (default
+        :data:`WORK_MAX_SIDE`, 512) are reduced to it by area averaging
+        before anything else (:meth:`XARun.resampled`: the same detector with
+        larger pixels), and ``labels`` given with them likewise (each pixel
+        the class covering most of it). Every later stage, the pictures,
+        ``Reconstruction.views``, ``frames`` and ``labels`` and the pixel
+        figures of the report are then at that size; ``header_views`` keep
+        the files' own size. None works on the frames as they are.
 
     Returns
     -------
@@ -1285,6 +1323,9 @@ def reconstruct(
     if sig is not None and (isinstance(sig, (bool, np.bool_)) or not isinstance(sig, (int, float))
                             or not np.isfinite(sig) or sig <= 0):
         raise ArgumentError(f"off_surface_sigmas: expected a number > 0 or None, got {off_surface_sigmas!r}")
+    if max_side is not None and (isinstance(max_side, (bool, np.bool_))
+                                 or not isinstance(max_side, (int, np.integer)) or max_side < 64):
+        raise ArgumentError(f"max_side: expected a whole number >= 64 or None, got {max_side!r}")
     # checked before the segmentation (minutes on long runs), not only by match_phase after it
     if isinstance(objects, str):
         ok = objects in ("auto", "vessels", *OBJECTS)
@@ -1298,6 +1339,15 @@ def reconstruct(
     t = time.perf_counter()
     ra = _as_run(run_a, geometry_a, "run_a")
     rb = _as_run(run_b, geometry_b, "run_b")
+    headers = (ra.view, rb.view)  # the files' geometry at the files' size
+    full = (ra, rb)
+    if max_side is not None:
+        ra, rb = ra.resampled(int(max_side)), rb.resampled(int(max_side))
+        for run, big, name in ((ra, full[0], "A"), (rb, full[1], "B")):
+            if run is not big:
+                warn.append(f"run {name}: frames of {big.view.rows}x{big.view.cols} px reduced to "
+                            f"{run.view.rows}x{run.view.cols} px (max_side={max_side}), the size the "
+                            "method's pixel parameters are set for")
     if frames is not None:
         try:
             fa, fb = (int(x) for x in frames)
@@ -1315,7 +1365,8 @@ def reconstruct(
     if labels is not None:
         if not isinstance(labels, (tuple, list)) or len(labels) != 2:
             raise ArgumentError("labels: expected a pair (labels of run A, labels of run B)")
-        la, lb = _check_labels(labels[0], ra, "labels[0]"), _check_labels(labels[1], rb, "labels[1]")
+        la = _resampled_labels(_check_labels(labels[0], full[0], "labels[0]"), ra.view)
+        lb = _resampled_labels(_check_labels(labels[1], full[1], "labels[1]"), rb.view)
         seg_info: dict[str, Any] = {"labels": "given"}
     else:
         seg = model if isinstance(model, Segmenter) else Segmenter(model)
@@ -1445,7 +1496,7 @@ def reconstruct(
 
     return Reconstruction(
         tree=tree, solid=vsolid, phase=phase, graphs=(ga, gb), match=match, branches=results,
-        views=views, header_views=(ra.view, rb.view), refinement=refinement,
+        views=views, header_views=headers, refinement=refinement,
         frames=(ra.frames[fa], rb.frames[fb]), labels=(lab_a, lab_b), errors=_summary(results),
         timings=timings, warnings=warn, sources=(ra.source, rb.source), segmentation=seg_info,
     )
