@@ -960,7 +960,7 @@ def test_coarse_frame_search_skips_unfilled_frames_and_finds_an_agreeing_pair():
         reconstruct(ra, rb, model=Truth(), frame_search="some")
 
 
-def test_cli_keep_off_surface_reaches_reconstruct():
+def test_cli_keep_off_surface_and_max_side_reach_reconstruct():
     from vesselcad.cli import _parser, _reconstruct_args
     from vesselcad.pipeline import OFF_SURFACE_SIGMAS
 
@@ -972,6 +972,10 @@ def test_cli_keep_off_surface_reaches_reconstruct():
     for cmd in (["reconstruct", "a.dcm", "b.dcm", "--out", "o"], ["batch", "in", "--out", "o"]):
         assert parsed(cmd)["off_surface_sigmas"] == OFF_SURFACE_SIGMAS
         assert parsed([*cmd, "--keep-off-surface"])["off_surface_sigmas"] is None
+        assert parsed(cmd)["max_side"] == 512 and parsed([*cmd, "--max-side", "768"])["max_side"] == 768
+        assert parsed([*cmd, "--max-side", "0"])["max_side"] is None  # the frames as they are
+        with pytest.raises(SystemExit):
+            parsed([*cmd, "--max-side", "32"])
 
 
 def test_cli_check_measures_a_written_tree_against_mask_files(tmp_path, capsys):

@@ -54,7 +54,7 @@ SUMMARY_COLUMNS = (
 _MANIFEST_ID = ("case", "id", "case_id")
 # reconstruct()'s defaults, so that the API and the CLI fingerprint the same options alike
 _DEFAULTS = {"method": "nurbs", "model": None, "objects": "auto", "refine": True, "solid": True,
-             "tta": "chosen", "frame_search": "all", "off_surface_sigmas": 4.0}
+             "tta": "chosen", "frame_search": "all", "off_surface_sigmas": 4.0, "max_side": 512}
 _RECORD = "case.json"
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -294,7 +294,8 @@ def _fingerprint(case: BatchCase, options: dict[str, Any]) -> str:
             h.update(json.dumps(p, sort_keys=True, default=str).encode())
     # an option at a default it had before it existed is left out, so older finished cases still match
     opts = {k: v for k, v in options.items()
-            if not (k == "frame_search" and v == "all") and not (k == "off_surface_sigmas" and v == 4.0)}
+            if not (k == "frame_search" and v == "all") and not (k == "off_surface_sigmas" and v == 4.0)
+            and not (k == "max_side" and v == 512)}
     h.update(json.dumps({"frames": case.frames, **opts}, sort_keys=True, default=str).encode())
     return h.hexdigest()[:16]
 

@@ -65,13 +65,24 @@ def _print_reconstruction(rec, paths: dict, out: Path) -> None:
     print("wrote " + ", ".join(sorted(paths)) + f" in {out}")
 
 
+def _max_side(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n != 0 and n < 64:
+        raise argparse.ArgumentTypeError(f"expected 0 or a whole number >= 64, got {text!r}")
+    return n
+
+
 def _reconstruct_args(args: argparse.Namespace) -> dict:
     from .pipeline import OFF_SURFACE_SIGMAS
 
     return {"method": args.method, "frames": args.frames, "model": args.model, "objects": args.objects,
             "refine": not args.no_refine, "solid": not args.no_solid, "progress": not args.quiet,
             "tta": args.tta, "frame_search": args.frame_search,
-            "off_surface_sigmas": None if args.keep_off_surface else OFF_SURFACE_SIGMAS}
+            "off_surface_sigmas": None if args.keep_off_surface else OFF_SURFACE_SIGMAS,
+            "max_side": args.max_side or None}
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -362,6 +373,10 @@ def _parser() -> argparse.ArgumentParser:
                        help="keep branches, and branch ends, that lie off the heart's surface fitted to "
                        "the tree (by default they are left out as wrong pairings; use it for vessels "
                        "that do not run on one surface)")
+        q.add_argument("--max-side", type=_max_side, default=512, metavar="PX",
+                       help="frames with more rows or columns are reduced to this size (area average) "
+                       "before anything else: the size the method's pixel parameters are set for "
+                       "(default 512; 0 keeps the frames as they are)")
         q.add_argument("--no-refine", action="store_true", help="keep the files' geometry as it is")
         q.add_argument("--no-solid", action="store_true", help="centrelines only, no CAD solid")
         q.add_argument("--no-html", action="store_true", help="skip report.html")
