@@ -8,6 +8,9 @@
   makes only this one).
 - surface_prior.png: the heart's surface of the matching, phantom lca 1015 (``--surface`` makes
   only this one).
+- seg_real_1024.png: the bundled model's labels of a real 1024² 10-bit angiogram (NEMA WG04 XA1)
+  on the frame as stored and on the frame reduced to 512² as ``reconstruct`` does (``--large``
+  makes only this one).
 - report_html.png: ``vesselcad demo``'s report.html as headless Chromium shows it (offline);
   only with ``--report`` (needs Chromium and playwright, as tests/test_report_browser.py).
 """
@@ -31,6 +34,7 @@ from vesselcad.phantom.preview import overlay  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REAL = HERE.parents[1] / "shared" / "data" / "xca-real"
+DICOM = HERE.parents[1] / "shared" / "data" / "dicom"
 
 
 def _detector_corners(view: vc.CArmView) -> np.ndarray:
@@ -141,6 +145,36 @@ def centreline_graph_real(path: Path) -> None:
                  "magenta, crossings orange, root red", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def large_frame_figure(path: Path) -> None:
+    """Labels of a real 1024² angiogram as stored and reduced to 512² (``reconstruct(max_side=512)``)."""
+    geometry = {"sid_mm": 1100.0, "sod_mm": 750.0, "pixel_spacing_mm": (0.2, 0.2), "primary_deg": 0.0,
+                "secondary_deg": 0.0}  # the file has no geometry tags; the labels do not depend on them
+    run = vc.load_run(DICOM / "wg04_xa1" / "XA1_UNC.dcm", geometry=geometry)
+    small = run.resampled(512)
+    seg = vc.Segmenter()
+    colours = np.array([[0, 0, 0], [255, 60, 60], [60, 255, 60], [60, 60, 255], [255, 255, 0]]) / 255.0
+    fig, axes = plt.subplots(1, 3, figsize=(18, 6.4))
+    panels = ((run.frames[0], None, f"XA1 as stored: {run.view.rows}² px, {run.bits_stored} bit"),
+              (run.frames[0], seg(run.frames[0], tta=True), "labels of the frame as stored"),
+              (small.frames[0], seg(small.frames[0], tta=True), "labels of the frame reduced to 512²\n"
+               "(reconstruct's max_side)"))
+    for ax, (img, lab, title) in zip(axes, panels, strict=True):
+        ax.imshow(img, cmap="gray")
+        if lab is not None:
+            rgba = np.zeros((*lab.shape, 4))
+            rgba[..., :3] = colours[lab]
+            rgba[..., 3] = 0.45 * (lab > 0)
+            ax.imshow(rgba)
+            title += f"\nvessel {np.mean(lab == 1):.1%}, catheter {np.mean(lab == 2):.1%} of the pixels"
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+    fig.suptitle("bundled model (int8, mirror TTA) on a real 1024² 10-bit angiogram (NEMA WG04 XA1, a "
+                 "cerebral study): vessel red, catheter green", fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
+    fig.savefig(path, dpi=70)
     plt.close(fig)
 
 
@@ -294,6 +328,9 @@ def main() -> int:
     if "--surface" in sys.argv[1:]:
         surface_figure(out / "surface_prior.png")
         return 0
+    if "--large" in sys.argv[1:]:
+        large_frame_figure(out / "seg_real_1024.png")
+        return 0
     if "--report" in sys.argv[1:]:
         report_screenshot(out / "report_html.png")
         return 0
@@ -304,6 +341,7 @@ def main() -> int:
     phantom_vs_real(out / "phantom_vs_real.png")
     centreline_graph_real(out / "centreline_graph_real.png")
     surface_figure(out / "surface_prior.png")
+    large_frame_figure(out / "seg_real_1024.png")
     print("wrote", *sorted(p.name for p in out.glob("*.png")))
     return 0
 
