@@ -250,6 +250,12 @@ def _render_run(anat: Anatomy, view: CArmView, phases: np.ndarray, times_ms: np.
                 bits: int, shift_mm: np.ndarray, progress: Any = None) -> RenderedRun:
     n = len(phases)
     rows, cols = view.rows, view.cols
+    # The detector's blur and quantum noise are set for 512 px across the field (as the texture's
+    # scales in _static_layers): a finer grid of the same field blurs over more pixels and each of
+    # its pixels catches fewer photons, so that a 1024-px run averaged 2 x 2 looks like a 512-px one.
+    scale = max(rows, cols) / 512.0
+    blur_px, post_blur_px = app.blur * scale, 0.45 * scale
+    photons_px = app.photons / scale ** 2
     static, dia = _static_layers(view, rng, app)
     heart = anat.heart
     vessels = anat.vessels
@@ -311,16 +317,16 @@ def _render_run(anat: Anatomy, view: CArmView, phases: np.ndarray, times_ms: np.
         dia_i = cv2.warpAffine(dia, np.float32([[1, 0, d_shift[0]], [0, 1, d_shift[1]]]),
                                (cols, rows), borderMode=cv2.BORDER_REPLICATE)
         A = static + dia_i + MU_HEART * shadow + vessel_img + cath_img
-        A = cv2.GaussianBlur(A, (0, 0), app.blur)
+        A = cv2.GaussianBlur(A, (0, 0), blur_px)
         if lo is None:  # window fixed per run from the first frame's background
             bg = static + dia_i + MU_HEART * shadow
             p_lo, p_hi = np.percentile(bg, [1.0, 99.5])
             lo = float(p_lo - app.lo_margin * (p_hi - p_lo))
             hi = float(p_hi + app.hi_margin * (p_hi - p_lo))
         # Quantum noise: relative std 1/sqrt(N) of the transmitted photons.
-        photons = app.photons * np.exp(-(A - lo))
+        photons = photons_px * np.exp(-(A - lo))
         A = A + noise_rng.standard_normal(A.shape).astype(np.float32) / np.sqrt(np.maximum(photons, 1.0))
-        A = cv2.GaussianBlur(A, (0, 0), 0.45)
+        A = cv2.GaussianBlur(A, (0, 0), post_blur_px)
         grey = np.clip((hi - A) / (hi - lo), 0, 1) ** app.gamma
         top = (1 << bits) - 1
         frames[i] = np.round(grey * (0.9 * top) + 0.04 * top).astype(frames.dtype)
