@@ -154,8 +154,10 @@ COARSE_REACH = 2
 #: to it before anything else (``XARun.resampled``). The method's pixel parameters (skeleton
 #: pruning, landmark and branch tolerances, the continuation's steps, the segmentation network's
 #: training scales) are set for cine of 512 pixels a side at about 0.27 mm per pixel at the
-#: isocentre; a 1024-pixel export of the same field gave phantom trees several millimetres off
-#: and took twice as long (docs/results.md, 2026-12-06).
+#: isocentre. On 1024-pixel phantom runs of the same field, taken as they were, a case took
+#: twice as long (the network at 768 px, every later stage on four times the pixels); with true
+#: labels the trees lay farther from the truth (1.77 against 1.45 mm), with the model's the
+#: difference lay within the benchmark's noise (docs/results.md, 2026-12-06).
 WORK_MAX_SIDE = 512
 
 
