@@ -156,8 +156,9 @@ COARSE_REACH = 2
 #: training scales) are set for cine of 512 pixels a side at about 0.27 mm per pixel at the
 #: isocentre. On 1024-pixel phantom runs of the same field, taken as they were, a case took
 #: twice as long (the network at 768 px, every later stage on four times the pixels); with true
-#: labels the trees lay farther from the truth (1.77 against 1.45 mm), with the model's the
-#: difference lay within the benchmark's noise (docs/results.md, 2026-12-06).
+#: labels the trees lay farther from the truth (1.77 against 1.45 mm), with the model's they
+#: fell outside what three noise draws of the 512-px runs gave, reduced they fell among them
+#: (docs/results.md, 2026-12-06).
 WORK_MAX_SIDE = 512
 
 
