@@ -466,7 +466,7 @@ def _resampled_labels(labels: np.ndarray, view: CArmView) -> np.ndarray:
         return labels
     out = np.zeros((n, view.rows, view.cols), np.uint8)
     best = np.full(out.shape, -1.0, np.float32)
-    for c in np.unique(labels):
+    for c in np.flatnonzero(np.bincount(labels.ravel(), minlength=1)):  # the classes present, rising
         share = np.stack([cv2.resize((f == c).astype(np.float32), (view.cols, view.rows),
                                      interpolation=cv2.INTER_AREA) for f in labels])
         take = share >= best - 1e-6  # classes come in rising order: ties to the higher one
