@@ -75,17 +75,18 @@ STAGES = ("segmentation", "phase", "graphs", "refinement", "matching", "centreli
 def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
              segmenter: vc.Segmenter | None = None, tta: str = "chosen",
              frame_search: str = "all", synchronized: bool = False, fps: float = 15.0,
-             size: int = 512) -> dict:
+             size: int = 512, noise_draw: int = 0) -> dict:
     base, _, option = variant.partition("/")
     mis = 1.5 if base.endswith("1.5deg") else 0.0
     case = generate_case(seed, kind, n_frames, miscalibration_deg=mis, synchronized=synchronized, fps=fps,
-                         rows=size, cols=size)
+                         rows=size, cols=size, noise_draw=noise_draw)
     d = workdir / f"{seed}_{variant.replace('/', '_')}"
     paths = write_case(case, d)
     labels = None if base == "model" else (case.run_a.labels, case.run_b.labels)
     objects = "vessels" if option == "vessels" else "auto"
     t0 = time.perf_counter()
-    row = {"seed": seed, "anatomy": kind, "frames": n_frames, "fps": fps, "size": size, "variant": variant}
+    row = {"seed": seed, "anatomy": kind, "frames": n_frames, "fps": fps, "size": size,
+           "noise_draw": noise_draw, "variant": variant}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -217,9 +218,15 @@ def main() -> None:
                     help="rows and columns of the rendered runs (default 512; the same 140 mm field at "
                     "the isocentre in finer pixels for more, as 1024² exports; reconstruct reduces "
                     "frames larger than its max_side, 512)")
+    ap.add_argument("--noise-draw", type=int, default=0, metavar="K",
+                    help="the phantom's K-th draw of its quantum noise (default 0): the same cases with "
+                    "other noise pixels; with the model's labels half the cases move by over 1 mm between "
+                    "draws (docs/results.md, 2026-12-06)")
     args = ap.parse_args()
     if not args.fps > 0:
         ap.error(f"--fps: expected a positive frame rate, got {args.fps}")
+    if args.noise_draw < 0:
+        ap.error(f"--noise-draw: expected an integer >= 0, got {args.noise_draw}")
     if args.size < 128:
         ap.error(f"--size: expected at least 128 px, got {args.size}")
     if args.frames is not None and args.frames < 2:
@@ -239,7 +246,7 @@ def main() -> None:
             for v in variants:
                 r = run_case(seed, kind, n_frames, v, Path(tmp), segmenter, tta=args.tta,
                              frame_search=args.frame_search, synchronized=args.synchronized, fps=args.fps,
-                             size=args.size)
+                             size=args.size, noise_draw=args.noise_draw)
                 rows.append(r)
                 t = r.get("truth", {})
                 print(f"seed {seed} {kind} {n_frames} frames {v}: {r['status'][:80]}; 3D mean "
@@ -248,7 +255,8 @@ def main() -> None:
                       f"{r['seconds']:.1f} s", file=sys.stderr, flush=True)
     sync = "synchronized" if args.synchronized else "unsynchronized"
     frames = "40-60" if args.frames is None else str(args.frames)
-    print(f"# end to end: {args.cases} phantom cases x {len(variants)} variants, {args.size}², {sync} "
+    print(f"# end to end: {args.cases} phantom cases x {len(variants)} variants, {args.size}², "
+          f"noise draw {args.noise_draw}, {sync} "
           f"{frames} frames at {args.fps:g} fps, model variant with mirror TTA of {args.tta} frames, "
           f"frame search {args.frame_search}")
     print(f"# {platform.platform()}, python {platform.python_version()}, {os.cpu_count()} CPUs, "

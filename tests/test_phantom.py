@@ -323,3 +323,20 @@ def test_a_finer_grid_of_the_same_field_averaged_down_looks_like_the_coarse_one(
     # steep); the noise's bounds are the spread of the phantom's photon counts (900-2500: 1.67x)
     assert 0.9 < fine[0] / coarse[0] < 1.1
     assert 0.6 < fine[1] / coarse[1] < 1.4
+
+
+def test_another_noise_draw_changes_only_the_noise():
+    # The same case with its quantum noise drawn again: labels, key points and true trees are the
+    # same, the frames differ by zero-mean noise of the size of the phantom's own (a few grey levels).
+    a = generate_case(9, "rca", n_frames=3, rows=128, cols=128)
+    b = generate_case(9, "rca", n_frames=3, rows=128, cols=128, noise_draw=1)
+    assert np.array_equal(generate_case(9, "rca", n_frames=3, rows=128, cols=128, noise_draw=0).run_a.frames,
+                          a.run_a.frames)
+    for ra, rb in ((a.run_a, b.run_a), (a.run_b, b.run_b)):
+        assert np.array_equal(ra.labels, rb.labels) and np.array_equal(ra.keypoints, rb.keypoints)
+        assert ra.trees == rb.trees
+        d = rb.frames.astype(float) - ra.frames.astype(float)
+        assert np.mean(d != 0) > 0.5  # every pixel drew its own noise
+        assert abs(d.mean()) < 0.2 and 1.0 < d.std() < 10.0
+    with pytest.raises(vc.ArgumentError, match="noise_draw"):
+        generate_case(9, "rca", n_frames=1, rows=64, cols=64, noise_draw=-1)

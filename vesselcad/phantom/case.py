@@ -247,7 +247,7 @@ def _bolus(path_mm: np.ndarray, t_s: float, duration_s: float, max_path: float) 
 # ---------------------------------------------------------------- one run
 def _render_run(anat: Anatomy, view: CArmView, phases: np.ndarray, times_ms: np.ndarray,
                 motion: MotionParams, app: _Appearance, rng: np.random.Generator,
-                bits: int, shift_mm: np.ndarray, progress: Any = None) -> RenderedRun:
+                bits: int, shift_mm: np.ndarray, progress: Any = None, noise_draw: int = 0) -> RenderedRun:
     n = len(phases)
     rows, cols = view.rows, view.cols
     # The detector's blur and quantum noise are set for 512 px across the field (as the texture's
@@ -273,7 +273,7 @@ def _render_run(anat: Anatomy, view: CArmView, phases: np.ndarray, times_ms: np.
     frames = np.zeros((n, rows, cols), np.uint16 if bits > 8 else np.uint8)
     labels = np.zeros((n, rows, cols), np.uint8)
     trees, keypoints = [], []
-    noise_rng = np.random.default_rng(rng.integers(2**63))
+    noise_rng = np.random.default_rng(int(rng.integers(2**63)) + noise_draw)
     for i in range(n):
         cph, rph = float(phases[i, 0]), float(phases[i, 1])
         t_s = float(times_ms[i]) / 1000.0
@@ -386,6 +386,7 @@ def generate_case(
     table_shift_mm: float = 0.0,
     twigs: int | None = None,
     progress: bool = False,
+    noise_draw: int = 0,
 ) -> PhantomCase:
     """Generate a seeded biplane phantom case (deterministic for a given seed and options).
 
@@ -418,6 +419,11 @@ def generate_case(
         the tree holds at most 30 vessels). Bigger trees for benchmarks.
     progress : bool
         Show a progress bar.
+    noise_draw : int
+        Which draw of the quantum noise (0, the default, as always): the same
+        case (anatomy, motion, geometry, contrast, labels, truth) with other
+        noise pixels, to measure how much a result owes to the noise
+        (``benchmarks/end_to_end.py --noise-draw``).
 
     Returns
     -------
@@ -436,6 +442,8 @@ def generate_case(
     if twigs is not None and (isinstance(twigs, bool) or not (isinstance(twigs, int | np.integer)
                                                             and 0 <= twigs <= 30)):
         raise ArgumentError(f"twigs: expected an integer 0..30 or None, got {twigs!r}")
+    if isinstance(noise_draw, bool) or not isinstance(noise_draw, int | np.integer) or noise_draw < 0:
+        raise ArgumentError(f"noise_draw: expected an integer >= 0, got {noise_draw!r}")
     rng = np.random.default_rng([int(seed), 0x7E55E1])
     if views is None:
         views = default_views(anatomy, rows, cols)
@@ -469,9 +477,9 @@ def generate_case(
     # OpenCV and large numpy operations release the GIL.
     with ThreadPoolExecutor(max_workers=2) as pool:
         fut_a = pool.submit(_render_run, anat, view_a, ph_a, t_a, motion, app_a, rng_a, bits,
-                            np.zeros(3), bar)
+                            np.zeros(3), bar, int(noise_draw))
         fut_b = pool.submit(_render_run, anat, view_b, ph_b, t_b, motion, app_b, rng_b, bits,
-                            shift, bar)
+                            shift, bar, int(noise_draw))
         run_a, run_b = fut_a.result(), fut_b.result()
     if bar is not None:
         bar.close()
