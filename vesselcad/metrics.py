@@ -307,7 +307,8 @@ def mask_reprojection(curves: Any, views: CArmView | list[CArmView], masks: Any,
         if m.shape != (view.rows, view.cols):
             if m.ndim != 2 or not _same_detector(m.shape, view):
                 raise ArgumentError(f"masks[{k}]: expected shape ({view.rows}, {view.cols}) (the view's "
-                                    f"rows, cols) or a multiple of it, got {m.shape}")
+                                    f"rows, cols) or the frame's size before reconstruct reduced it, "
+                                    f"got {m.shape}")
             view = view.resized(*m.shape)  # a mask of the frame as read, before reconstruct reduced it
         m = m.astype(bool)
         with warnings.catch_warnings():  # the mask's loops and crossings are not the user's concern here
