@@ -434,10 +434,7 @@ def _as_run(run: Any, geometry: Any, name: str) -> XARun:
             return run
         view = geometry if isinstance(geometry, CArmView) else CArmView.from_dict(
             {**run.view.to_dict(), **dict(geometry)}, f"geometry_{name[-1]}")
-        return XARun(frames=run.frames, view=view, frame_times_ms=run.frame_times_ms,
-                     bits_stored=run.bits_stored, r_wave_frames=run.r_wave_frames,
-                     patient_id=run.patient_id, patient_name=run.patient_name, study_uid=run.study_uid,
-                     series_uid=run.series_uid, study_date=run.study_date, source=run.source)
+        return replace(run, view=view)
     if isinstance(run, (str, os.PathLike)):
         if isinstance(geometry, CArmView):
             geometry = geometry.to_dict()

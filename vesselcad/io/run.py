@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -131,10 +131,7 @@ class XARun:
         s = max(h, w) / float(max_side)
         rows, cols = max(1, int(round(h / s))), max(1, int(round(w / s)))
         frames = np.stack([cv2.resize(f, (cols, rows), interpolation=cv2.INTER_AREA) for f in self.frames])
-        return XARun(frames=frames, view=self.view.resized(rows, cols), frame_times_ms=self.frame_times_ms,
-                     bits_stored=self.bits_stored, r_wave_frames=self.r_wave_frames,
-                     patient_id=self.patient_id, patient_name=self.patient_name, study_uid=self.study_uid,
-                     series_uid=self.series_uid, study_date=self.study_date, source=self.source)
+        return replace(self, frames=frames, view=self.view.resized(rows, cols))
 
     def __repr__(self) -> str:
         v = self.view
