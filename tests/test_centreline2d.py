@@ -275,3 +275,28 @@ def test_a_given_catheter_tip_roots_the_tree():
         vc.centreline_graph(labels == 1, VIEW, labels=labels, tip="ostium")
     with pytest.raises(vc.ArgumentError, match="tip"):
         vc.centreline_graph(labels == 1, VIEW, tip=(60.0, 139.0))
+
+
+def test_root_at_a_catheter_tip_a_catheter_width_off_the_vessel():
+    # The catheter's last pixels cover the vessel's first ones (its label wins): the tip ends 5 px
+    # above the vessel's wall, 10 px from the centreline (more than a radius plus TIP_MARGIN_PX
+    # from it). The vessel pixel nearest the tip stands for it: the root is put into the branch
+    # below the tip, not at a vessel end 55 px away.
+    labels = scene([((40, 150), (220, 150), 4.5)],
+                   [((100, 0), (100, 138), 2.5)])
+    assert (labels[141:145, 100] == 0).all()  # background between the catheter and the vessel
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels, tip=(100.0, 140.0))
+    root = g.landmarks[g.root]
+    assert np.allclose(root.point_px, (100, 150), atol=3.0)
+    assert root.degree == 2
+
+
+def test_root_at_the_tip_ignores_the_end_of_another_skeleton_piece():
+    # A separate piece of vessel (a stub the segmentation cut off) ends 12 px from the catheter tip;
+    # the tree's own skeleton runs past the tip. The stub's end says nothing about the tree's root:
+    # the tree is rooted at the tip, not at its own end nearest the tip (55 px away).
+    labels = scene([((40, 150), (220, 150), 4.5), ((90, 139), (40, 100), 2.5)],
+                   [((100, 0), (100, 144), 2.5)])
+    g = vc.centreline_graph(labels == 1, VIEW, labels=labels, tip=(100.0, 144.0))
+    assert nx.number_connected_components(g.graph) == 2  # the stub is a piece of its own
+    assert np.allclose(g.landmarks[g.root].point_px, (100, 150), atol=3.0)

@@ -844,7 +844,7 @@ def centreline_graph(
         if _cannulated(cath, m, rmap, tip):
             entry = _edt(~cath)  # the ostium is where the catheter enters the vessel
         else:
-            w.root_hint = _root_at_tip(w, rmap, tip)  # the skeleton runs through the ostium: a node there
+            w.root_hint = _root_at_tip(w, rmap, tip, m)  # the skeleton runs through the ostium: a node there
     root_of = _choose_roots(w, rmap, tip, entry)
     n_cut = 0
     for _ in range(50):  # splicing after a cut renumbers edges: repeat until no loop is left
@@ -948,31 +948,47 @@ def _cannulated(cath: np.ndarray, m: np.ndarray, rmap: np.ndarray, tip: np.ndarr
     return bool(np.mean(inside) > CANNULATED_SHARE)
 
 
-def _root_at_tip(w: _Work, rmap: np.ndarray, tip: np.ndarray) -> int | None:
+def _root_at_tip(w: _Work, rmap: np.ndarray, tip: np.ndarray, m: np.ndarray) -> int | None:
     """The node at the catheter tip where the skeleton runs through the ostium, split in if needed.
 
     In a projection the ostium is often not a vessel end: a side branch (or
     the left main's two daughters) leaves it in the other direction, and the
-    skeleton runs on through it. When the skeleton passes within a vessel
-    radius (plus ``TIP_MARGIN_PX``) of the tip and no end point lies within
-    about the same distance plus a radius (a skeleton stops about a radius
-    short of a vessel's end), the branch is split at its point nearest the
-    tip, or an existing node there is used. None otherwise.
+    skeleton runs on through it. The catheter's last pixels cover the vessel's
+    first ones (its label wins), so the tip itself often lies a catheter
+    radius or more off the vessel mask: the vessel pixel nearest the tip
+    (within ``TIP_ON_VESSEL_PX``) stands for it. When the skeleton passes
+    within a vessel radius (plus ``TIP_MARGIN_PX``) of that pixel and no end
+    point *of the same skeleton piece* lies within about the tip's distance
+    from the skeleton plus a radius (a skeleton stops about a radius short of
+    a vessel's end), the branch is split at its point nearest that pixel, or an
+    existing node there is used. None otherwise. (An end of another piece near
+    the tip, a stub the catheter cut off, does not make the tree's own end the
+    root: that end can lie far down the tree.)
     """
     if not w.edges:
         return None
+    rr, cc = np.nonzero(m)
+    if not len(rr):
+        return None
+    gap = np.hypot(cc - tip[0], rr - tip[1])
+    i = int(np.argmin(gap))
+    if gap[i] > TIP_ON_VESSEL_PX:
+        return None  # the tip is not at the vessel
+    at_vessel = np.array([cc[i], rr[i]], float)
     keys = list(w.edges)
     pts = [w.edges[k][2] for k in keys]
     flat = np.concatenate(pts)
     owner = np.repeat(np.arange(len(keys)), [len(p) for p in pts])
     at = np.concatenate([np.arange(len(p)) for p in pts])
-    d = np.linalg.norm(flat - tip, axis=1)
+    d = np.linalg.norm(flat - at_vessel, axis=1)
     q = int(np.argmin(d))
     r = float(_radius_at(rmap, flat[q][None])[0])
     if d[q] > r + TIP_MARGIN_PX:
-        return None  # the tip is not on the vessel
-    ends = [n for n in w.nodes if w.degree(n) == 1]
-    if ends and min(float(np.linalg.norm(w.nodes[n] - tip)) for n in ends) <= d[q] + r + TIP_MARGIN_PX:
+        return None  # that vessel pixel is on no skeleton piece (a dropped one)
+    reach = float(np.linalg.norm(flat[q] - tip))
+    piece = nx.node_connected_component(w.to_nx(), w.edges[keys[owner[q]]][0])
+    ends = [n for n in piece if w.degree(n) == 1]
+    if ends and min(float(np.linalg.norm(w.nodes[n] - tip)) for n in ends) <= reach + r + TIP_MARGIN_PX:
         return None  # an end lies at the tip: the usual root
     k, j = keys[owner[q]], int(at[q])
     u, v, line = w.edges[k]
