@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from pathlib import Path
 
 import cv2
@@ -288,6 +289,30 @@ def test_report_follows_the_contract(recon, tmp_path):
     tree = vc.VesselTree.from_json(paths["centrelines.json"])
     err, _ = cKDTree(TRUTH).query(np.vstack([b.points for b in tree]))
     assert err.mean() < 0.5
+
+
+def test_what_an_export_says_of_its_file_goes_into_the_report(recon, tmp_path, monkeypatch):
+    # A mesh export that warns (a triangulation with holes, or not manifold somewhere) says so
+    # in report.json's warnings, under the file's name, and still to the caller.
+    import dataclasses
+
+    rec = dataclasses.replace(recon, warnings=list(recon.warnings))
+    cls = type(rec.solid)
+    real = cls.export_stl
+
+    def noisy(self, path, *a, **k):
+        warnings.warn("the solid's triangulation has 2 edge(s) shared by more than two triangles",
+                      vc.VesselcadWarning, stacklevel=2)
+        return real(self, path, *a, **k)
+
+    monkeypatch.setattr(cls, "export_stl", noisy)
+    with pytest.warns(vc.VesselcadWarning, match="shared by more than two"):
+        paths = rec.write(tmp_path)
+    rep = json.loads(paths["report.json"].read_text())
+    said = "tree.stl: the solid's triangulation has 2 edge(s) shared by more than two triangles"
+    assert said in rep["warnings"]
+    assert (tmp_path / "tree.stl").stat().st_size > 0
+    assert len(recon.warnings) < len(rec.warnings)  # the shared fixture is untouched
 
 
 def test_overlay_marks_starts_joined_across_an_unpaired_stretch(recon, tmp_path):

@@ -12,12 +12,13 @@ import base64
 import html
 import json
 import time
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .errors import OutputError
+from .errors import OutputError, VesselcadWarning
 from .io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
 
 if TYPE_CHECKING:
@@ -352,10 +353,20 @@ def write_outputs(rec: Reconstruction, out: Path, *, html: bool = True, progress
         for name, fn in (("tree.step", rec.solid.export_step), ("tree.stl", rec.solid.export_stl),
                          ("tree.glb", rec.solid.export_glb)):
             try:
-                fn(out / name)
+                with warnings.catch_warnings(record=True) as seen:
+                    warnings.simplefilter("always")
+                    fn(out / name)
                 paths[name] = out / name
             except Exception as exc:  # one output never loses the others
                 rec.warnings.append(f"{name}: could not be written ({type(exc).__name__}: {exc})")
+            # what an export says about its file (a mesh with holes, or not manifold somewhere)
+            # goes into report.json too, and on to the caller as before
+            for w in seen:
+                if issubclass(w.category, VesselcadWarning):
+                    note = f"{name}: {w.message}"
+                    if note not in rec.warnings:
+                        rec.warnings.append(note)
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     paths["overlay.png"] = plot_overlays(rec, out / "overlay.png")
     paths["phase.png"] = plot_error_matrix(rec.phase, out / "phase.png",
                                            title=f"chosen frames ({rec.phase.frame_a}, {rec.phase.frame_b})")
