@@ -509,6 +509,31 @@ def test_triangulation_defects_count_open_and_overshared_edges():
     assert _mesh_defects(v, t[:0]) == (1, 0)
 
 
+def test_small_holes_are_closed_against_their_rim():
+    from vesselcad.kernel.solid import _fill_small_holes, _mesh_defects
+
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))  # 12 triangles, outward, volume 1
+    v, t = np.asarray(box.vertices), np.asarray(box.faces)
+    b, r = np.arange(len(t)), np.zeros(len(t), int)
+    # one triangle left out: its rim is 1 + 1 + sqrt(2) long
+    cut = t[1:]
+    assert _mesh_defects(v, cut) == (3, 0)
+    same = _fill_small_holes(v, cut, b[1:], r[1:], max_perimeter=3.0)
+    assert len(same[0]) == 11  # a rim longer than allowed stays open
+    tt, bb, rr = _fill_small_holes(v, cut, b[1:], r[1:], max_perimeter=3.5)
+    assert _mesh_defects(v, tt) == (0, 0) and len(tt) == 12 and len(bb) == len(rr) == 12
+    closed = trimesh.Trimesh(v, tt, process=False)
+    assert closed.is_winding_consistent and closed.volume == pytest.approx(1.0)
+    # the new triangle takes the tags of a triangle on the rim
+    assert bb[-1] in b[1:][np.any(np.isin(cut, t[0]).sum(axis=1)[:, None] == 2, axis=1)]
+    # both triangles of one side out (a square rim of 4) closed by a fan of two
+    side = np.all(np.isclose(box.face_normals, box.face_normals[0]), axis=1)
+    assert side.sum() == 2 and _mesh_defects(v, t[~side]) == (4, 0)
+    tt, _, _ = _fill_small_holes(v, t[~side], b[~side], r[~side], max_perimeter=4.5)
+    assert _mesh_defects(v, tt) == (0, 0) and len(tt) == 12
+    assert trimesh.Trimesh(v, tt, process=False).volume == pytest.approx(1.0)
+
+
 def test_triangles_on_the_same_nodes_cancel_by_orientation():
     from vesselcad.kernel.solid import _unpaired_triangles
 
