@@ -83,10 +83,11 @@ MESH_MIN_RADIUS_MM = 0.3
 #: Holes of a triangulation whose rim is at most this many times the linear deflection long
 #: are closed by a fan of triangles instead of meshing the solid again finer.
 SMALL_HOLE_DEFLECTIONS = 10.0
-#: A triangulation whose enclosed volume is not the solid's within this share (inscribed facets
-#: fall short by at most about 1.5 % at the default angular deflection) is redone once through
-#: a healed copy of the solid, and said if it stays so.
-MESH_VOLUME_TOLERANCE = 0.02
+#: A triangulation whose enclosed volume falls short of the solid's by more than inscribed facets
+#: can (``theta**2 / 4`` of facets turning by theta, the larger of the angular deflection's and
+#: the linear deflection's on the thinnest vessel) plus this share is redone once through a
+#: healed copy of the solid, and said if it stays so (about 2.8 % with the default deflections).
+MESH_VOLUME_TOLERANCE = 0.005
 #: Time limit (s) of OCCT's face unification after the union (normally ~0.2 s per
 #: tree; it can loop forever, see :func:`_tidy`).
 TIDY_TIMEOUT_S = 20.0
@@ -709,11 +710,12 @@ class VesselSolid:
     # ------------------------------------------------------------ meshes
     def _mesh(self, linear_deflection: float | None, angular_deflection: float,
               closed: bool = True) -> float:
+        # a thread-thin end (a radius clamped at a kink) must not make the whole tree's mesh
+        # millions of triangles
+        r_thin = max(min([p.end_radius for p in self.pipes] + [p.start_radius for p in self.pipes] or [1.0]),
+                     MESH_MIN_RADIUS_MM)
         if linear_deflection is None:
-            r_min = min([p.end_radius for p in self.pipes] + [p.start_radius for p in self.pipes] or [1.0])
-            # a thread-thin end (a radius clamped at a kink) must not make the whole
-            # tree's mesh millions of triangles
-            linear_deflection = max(r_min, MESH_MIN_RADIUS_MM) / 50.0
+            linear_deflection = r_thin / 50.0
         if not (linear_deflection > 0 and angular_deflection > 0):
             raise ArgumentError("linear_deflection, angular_deflection: expected positive numbers, got "
                                 f"{linear_deflection!r}, {angular_deflection!r}")
@@ -739,6 +741,8 @@ class VesselSolid:
         shape, faces = self._healed if self._healed is not None else (self.shape, self.faces)
         healed = self._healed is not None
         defects, ratio = (0, 0), 1.0
+        theta = min(key[1], np.sqrt(8.0 * key[0] / r_thin))  # largest turn between facets
+        vol_tol = MESH_VOLUME_TOLERANCE + theta**2 / 4.0
         for factor in (1.0, 0.93, 0.85, 0.75, 0.6) if closed else (1.0,):
             while True:
                 # Drop any earlier triangulation: OCCT keeps an existing one if it is finer.
@@ -759,7 +763,7 @@ class VesselSolid:
                 if defects[0]:
                     break  # holes: tried again finer
                 ratio = self._volume_ratio()
-                if (defects[1] or abs(ratio - 1.0) > MESH_VOLUME_TOLERANCE) and not healed:
+                if (defects[1] or abs(ratio - 1.0) > vol_tol) and not healed:
                     healed = True  # the same deflection through the healed copy
                     shape, faces = self._healed = self._healed_faces()
                     continue
@@ -775,12 +779,12 @@ class VesselSolid:
             warnings.warn(f"OCCT's triangulation of the solid has holes at deflections {0.6 * key[0]:.3g}-"
                           f"{key[0]:.3g} mm: the STL/GLB/trimesh will not be watertight (the B-rep is; "
                           "try another tolerance)", VesselcadWarning, stacklevel=3)
-        elif closed and (defects[1] or abs(ratio - 1.0) > MESH_VOLUME_TOLERANCE):
+        elif closed and (defects[1] or abs(ratio - 1.0) > vol_tol):
             what = []
             if defects[1]:
                 what.append(f"{defects[1]} edge(s) shared by more than two triangles (no hole, but not "
                             "manifold there)")
-            if abs(ratio - 1.0) > MESH_VOLUME_TOLERANCE:
+            if abs(ratio - 1.0) > vol_tol:
                 what.append("a face OCCT's mesher covered only in part")
             warnings.warn(f"the solid's triangulation has {' and '.join(what)}: the STL/GLB/trimesh encloses "
                           f"{ratio:.1%} of the solid's volume (the B-rep is one valid solid)",
@@ -789,8 +793,7 @@ class VesselSolid:
         return key[0] * factor
 
     def _volume_ratio(self) -> float:
-        """The current triangulation's enclosed volume over the solid's (inscribed facets fall
-        short by at most about 1.5 % at the default angular deflection)."""
+        """The current triangulation's enclosed volume over the solid's."""
         p = self._triangles[0][self._triangles[1]]
         vol = float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum()) / 6.0
         return vol / self.volume
