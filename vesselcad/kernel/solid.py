@@ -563,15 +563,7 @@ class VesselSolid:
             return replace(self, faces=list(self.faces), warnings=[
                 *self.warnings, f"could not merge the {len(short)} edges shorter than {min_length_mm} mm "
                 f"(shortest {min(short) * 1000:.1f} um): left as they are"])
-        ctx = fix.Context()
-        tags = {}
-        for f, t in self.faces:
-            g = ctx.Apply(f)
-            tags.setdefault(hash(g), []).append((g, t))
-        faces = []
-        for f in _subshapes(solid, TopAbs_FACE):
-            hit = [t for g, t in tags.get(hash(f), []) if g.IsSame(f)]
-            faces.append((TopoDS.Face_s(f), hit[0] if hit else FaceTag(-1, "unknown", "wall")))
+        faces = _retagged(fix.Context(), self.faces, solid)
         note = (f"merged {len(short) - len(left)} edges shorter than {min_length_mm} mm (shortest "
                 f"{min(short) * 1000:.1f} um) into their neighbours")
         return replace(self, shape=solid, faces=faces, warnings=[*self.warnings, note])
@@ -804,16 +796,7 @@ class VesselSolid:
         fix = ShapeFix_Shape(self.shape)
         fix.Perform()
         new = fix.Shape()
-        ctx = fix.Context()
-        tags: dict[int, list[tuple[TopoDS_Shape, FaceTag]]] = {}
-        for f, t in self.faces:
-            for g in [ctx.Apply(f), *_subshapes(ctx.Apply(f), TopAbs_FACE)]:
-                tags.setdefault(hash(g), []).append((g, t))
-        faces = []
-        for f in _subshapes(new, TopAbs_FACE):
-            hit = [t for g, t in tags.get(hash(f), []) if g.IsSame(f)]
-            faces.append((TopoDS.Face_s(f), hit[0] if hit else FaceTag(-1, "unknown", "wall")))
-        return new, faces
+        return new, _retagged(fix.Context(), self.faces, new)
 
     def _collect_triangles(self, shape: TopoDS_Shape | None = None,
                            faces: list[tuple[TopoDS_Face, FaceTag]] | None = None
@@ -870,8 +853,12 @@ class VesselSolid:
             Largest angle (rad) between the normals of neighbouring facets.
         check_closed : bool
             The triangulation is checked to be closed (every edge shared by two
-            triangles); where OCCT leaves holes it is redone at up to 0.6 times
-            the deflection, and a ``VesselcadWarning`` says so if none is closed.
+            triangles) and to enclose the solid's volume (less what inscribed
+            facets lose): tiny holes are closed by fans; larger holes make it
+            redone at up to 0.6 times the deflection; edges in more than two
+            triangles or too little volume make it redone once through a copy of
+            the solid healed by ``ShapeFix_Shape``. A ``VesselcadWarning`` says
+            what remains (docs/solids.md, "Meshes are derived products").
             False: OCCT's first triangulation as it is, for pictures (coarse
             meshes are the ones OCCT leaves open most often; report.html's 3D
             view at 0.05 mm took 3.6 s of retries on a 17-branch tree, 0.5 s
@@ -973,6 +960,23 @@ class VesselSolid:
     def __repr__(self) -> str:
         return (f"VesselSolid(branches={len(self.branch_ids)}, faces={len(self.faces)}, "
                 f"failed={sorted(self.failed)}, volume={self.volume:.1f} mm^3)")
+
+
+def _retagged(ctx: Any, faces: list[tuple[TopoDS_Face, FaceTag]], shape: TopoDS_Shape
+              ) -> list[tuple[TopoDS_Face, FaceTag]]:
+    """The faces of ``shape``, which a shape-healing tool (its ``ShapeBuild_ReShape`` context
+    ``ctx``) made from a solid with the tagged ``faces``, each with the tag of the face it came
+    from (a face it split: each piece; none found: branch -1, "unknown")."""
+    tags: dict[int, list[tuple[TopoDS_Shape, FaceTag]]] = {}
+    for f, t in faces:
+        g = ctx.Apply(f)
+        for h in [g, *_subshapes(g, TopAbs_FACE)]:
+            tags.setdefault(hash(h), []).append((h, t))
+    out = []
+    for f in _subshapes(shape, TopAbs_FACE):
+        hit = [t for g, t in tags.get(hash(f), []) if g.IsSame(f)]
+        out.append((TopoDS.Face_s(f), hit[0] if hit else FaceTag(-1, "unknown", "wall")))
+    return out
 
 
 def _mesh_defects(verts: np.ndarray, tris: np.ndarray) -> tuple[int, int]:
