@@ -22,6 +22,14 @@ with the phantom's 3D truth tree projected into both views:
 - correctly paired length: share of the truth centreline length (samples every
   0.5 mm, visible in both masks) whose projections lie on the two pieces of
   one branch pair (within 1 px plus the radius in each view);
+- where the rest lies: the truth length visible in both masks that is not
+  correctly paired, split by what each view has there (within 1 px plus the
+  radius): *held in one view* (that view's stretch belongs to a pair, of
+  another vessel or of this one run past its partner, the other view's is on
+  the skeleton and free: two vessels overlapping in one view, as a rule),
+  *held in both* (both views' stretches belong to pairs, not to one pair),
+  *off the skeleton* (in one view or both), *free in both* (both views'
+  skeletons run there and no pair holds either);
 - topology: share of branch pairs between two correctly matched landmarks
   whose start is an ancestor of its end in the truth tree;
 - roots: share of views whose graph root lies within 3 px plus the radius of
@@ -211,10 +219,19 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
     tot = ok = 0.0
     pieces_a = [p.points_a_px for p in m.pairs]
     pieces_b = [p.points_b_px for p in m.pairs]
+    # what each view has near a sample: the skeleton, a pair's piece
+    near = []
+    for g, pieces in ((ga, pieces_a), (gb, pieces_b)):
+        skel = [b.points_px for b in g.branches]
+        near.append((cKDTree(np.vstack(skel)) if skel else None,
+                     cKDTree(np.vstack(pieces)) if pieces else None))
+    rest = dict.fromkeys(("held_one", "held_both", "off_skeleton", "free"), 0.0)
     for dense, r in dense_branches(tree, 0.5):
         on = np.ones(len(dense), bool)
         near_pair = np.ones((len(m.pairs), len(dense)), bool)
-        for v, (mask, _), pieces in ((va, masks[0], pieces_a), (vb, masks[1], pieces_b)):
+        skel_ok, held = [], []
+        for v, (mask, _), pieces, (t_skel, t_held) in ((va, masks[0], pieces_a, near[0]),
+                                                       (vb, masks[1], pieces_b, near[1])):
             q = v.project(dense)
             rp = radius_px(v, dense, r)
             ij = np.clip(np.round(q).astype(int), 0, [v.cols - 1, v.rows - 1])
@@ -222,10 +239,21 @@ def evaluate(seed: int, kind: str, plot_dir: str | None = None, continuation: bo
             for k, piece in enumerate(pieces):
                 d = np.min(np.linalg.norm(q[:, None] - piece[None], axis=-1), axis=1)
                 near_pair[k] &= d <= 1.0 + rp
+            skel_ok.append(t_skel.query(q)[0] <= 1.0 + rp if t_skel else np.zeros(len(q), bool))
+            held.append(t_held.query(q)[0] <= 1.0 + rp if t_held else np.zeros(len(q), bool))
+        paired = on & near_pair.any(axis=0) if len(m.pairs) else np.zeros(len(dense), bool)
         tot += on.sum() * 0.5
-        ok += (on & near_pair.any(axis=0)).sum() * 0.5 if len(m.pairs) else 0.0
+        ok += paired.sum() * 0.5
+        miss = on & ~paired
+        off = miss & ~(skel_ok[0] & skel_ok[1])
+        miss &= ~off
+        rest["off_skeleton"] += off.sum() * 0.5
+        rest["held_one"] += (miss & (held[0] ^ held[1])).sum() * 0.5
+        rest["held_both"] += (miss & held[0] & held[1]).sum() * 0.5
+        rest["free"] += (miss & ~held[0] & ~held[1]).sum() * 0.5
     res["truth_length_mm"] = tot
     res["paired_length_mm"] = ok
+    res["unpaired_mm"] = rest
 
     # Topology: branch pairs between two correct landmark pairs follow the truth tree's order.
     topo_n = topo_ok = 0
@@ -294,6 +322,8 @@ def summarize(rows: list[dict]) -> list[dict]:
             "branch_offset_radii": _median_of(rs, "branch_offset_radii"),
             "off_3d": sum(r["pairs_3d_off_mm"] for r in rs)
             / max(sum(r["pairs_3d_off_mm"] + r["pairs_3d_on_mm"] for r in rs), 1e-9),
+            **{f"rest_{k}": sum(r["unpaired_mm"][k] for r in rs)
+               / max(sum(r["truth_length_mm"] for r in rs), 1e-9) for k in rs[0]["unpaired_mm"]},
             "t_mean_s": float(t.mean()), "t_p95_s": float(np.percentile(t, 95)),
             "t_graph_s": float(np.mean([r["t_graph_s"] for r in rs])),
             "t_match_s": float(np.mean([r["t_match_s"] for r in rs])),
@@ -344,6 +374,16 @@ def main(argv: list[str] | None = None) -> int:
               f"| {s['branch_offset_px']:.2f} ({s['branch_offset_radii']:.2f}) "
               f"| {100 * s['off_3d']:.1f}% "
               f"| {s['t_mean_s']:.3f}, {s['t_p95_s']:.3f} | {s['t_graph_s']:.3f} | {s['t_match_s']:.3f} |")
+    print()
+    print("Where the truth length both masks show lies when it is not correctly paired (shares of it):")
+    print()
+    print("| anatomy | paired | held in one view, free in the other | held in both | off the skeleton "
+          "| free in both |")
+    print("|---|---|---|---|---|---|")
+    for s in summ:
+        print(f"| {s['anatomy']} | {100 * s['paired_length']:.1f}% | {100 * s['rest_held_one']:.1f}% "
+              f"| {100 * s['rest_held_both']:.1f}% | {100 * s['rest_off_skeleton']:.1f}% "
+              f"| {100 * s['rest_free']:.1f}% |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"rows": rows, "summary": summ}, f, indent=1)
