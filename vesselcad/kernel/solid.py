@@ -979,16 +979,34 @@ def _retagged(ctx: Any, faces: list[tuple[TopoDS_Face, FaceTag]], shape: TopoDS_
     return out
 
 
+def _edge_use(verts: np.ndarray, tris: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """How the triangles use their edges (nodes equal to 1e-6 mm merged).
+
+    Returns the merged id of each node, the triangles' directed edges in merged ids
+    (edges whose two nodes merged left out), the triangle of each, the index of each
+    among the distinct edges, and how many triangles use each distinct edge (either
+    way round).
+    """
+    ids = _merged_ids(verts, 6)
+    t = ids[tris]
+    d = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    owner = np.tile(np.arange(len(t)), 3)
+    ok = d[:, 0] != d[:, 1]
+    d, owner = d[ok], owner[ok]
+    e = np.sort(d, axis=1)
+    # each edge one int64 key (ids below n = the vertex count, so a * n + b is unique), one 1D sort
+    _u, inv, counts = np.unique(e[:, 0] * np.int64(len(verts)) + e[:, 1], return_inverse=True,
+                                return_counts=True)
+    return ids, d, owner, np.asarray(inv).ravel(), counts
+
+
 def _mesh_defects(verts: np.ndarray, tris: np.ndarray) -> tuple[int, int]:
     """Edges of the triangles (nodes equal to 1e-6 mm merged) used once (holes) and used more
     than twice (walls that touch); a closed manifold mesh has neither. No triangles: one hole."""
     if not len(tris):
         return 1, 0
-    t = _merged_ids(verts, 6)[tris]
-    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    edges = edges[edges[:, 0] != edges[:, 1]]
-    # each edge one int64 key (ids below n = the vertex count, so a * n + b is unique), one 1D sort
-    _e, counts = np.unique(edges[:, 0] * np.int64(len(verts)) + edges[:, 1], return_counts=True)
+    counts = _edge_use(verts, tris)[4]
     return int(np.sum(counts == 1)), int(np.sum(counts > 2))
 
 
@@ -1002,14 +1020,8 @@ def _fill_small_holes(verts: np.ndarray, tris: np.ndarray, branch: np.ndarray, r
     that do not form simple loops, are left. Returns the triangles, branch ids and role
     codes with the new triangles appended.
     """
-    ids = _merged_ids(verts, 6)
-    t = ids[tris]
-    d = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-    owner = np.tile(np.arange(len(t)), 3)
-    e = np.sort(d, axis=1)
-    _u, inv, counts = np.unique(e[:, 0] * np.int64(len(verts)) + e[:, 1], return_inverse=True,
-                                return_counts=True)
-    rim = np.flatnonzero(counts[np.asarray(inv).ravel()] == 1)
+    ids, d, owner, inv, counts = _edge_use(verts, tris)
+    rim = np.flatnonzero(counts[inv] == 1)
     if not len(rim):
         return tris, branch, role
     rep = np.empty(ids.max() + 1, np.int64)
