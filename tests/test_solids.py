@@ -685,6 +685,43 @@ def test_a_wall_whose_seam_a_child_opening_crosses_is_meshed_whole():
     assert set(np.unique(mesh.face_attributes["branch"])) == set(solid.branch_ids)
 
 
+def test_edges_shorter_than_the_deflection_in_four_triangles_collapse():
+    # End-to-end lca 2003 with the model's labels (the tree as reconstructed): where two walls
+    # meet, two faces' triangulations overlap around a node, leaving two edges of about 3 um in
+    # four triangles each, healed or not. Below the deflection (about 6 um), they collapse: the
+    # mesh is closed with every edge in two triangles, and encloses the solid.
+    import warnings
+
+    import vesselcad.kernel.solid as S
+
+    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "mesh_fold_lca_2003.json")
+    solid = tree.solid()
+    assert solid.check()["valid"] and solid.check()["watertight"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", vc.VesselcadWarning)  # nothing left to say
+        mesh = solid.to_trimesh()
+    assert S._mesh_defects(mesh.vertices, mesh.faces) == (0, 0)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert len(mesh.split(only_watertight=False)) == 1
+    assert mesh.volume == pytest.approx(solid.volume, rel=0.01)
+    assert mesh.area == pytest.approx(solid.area, rel=0.01)
+    # the collapse moved nodes by no more than the deflection: the mesh nodes near the fold lie
+    # on the solid's boundary within it (OCCT's exact distance to its shell)
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
+    from OCP.BRepExtrema import BRepExtrema_DistShapeShape
+    from OCP.gp import gp_Pnt
+    from OCP.TopAbs import TopAbs_SHELL
+
+    from vesselcad.kernel.solid import _subshapes
+
+    shell = _subshapes(solid.shape, TopAbs_SHELL)[0]
+    near = mesh.vertices[np.linalg.norm(mesh.vertices - [28.42, -42.72, -37.755], axis=1) < 0.05]
+    assert len(near) >= 3
+    for p in near:
+        vertex = BRepBuilderAPI_MakeVertex(gp_Pnt(*map(float, p))).Vertex()
+        assert BRepExtrema_DistShapeShape(vertex, shell).Value() < 0.01
+
+
 def test_a_picture_mesh_is_one_unchecked_triangulation(y_solid, monkeypatch):
     import warnings
 

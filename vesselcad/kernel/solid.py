@@ -789,6 +789,17 @@ class VesselSolid:
                 # face meshed 10 of its 53 mm², the mesh closed but 5.9 % short of the solid at
                 # 0.0036-0.02 mm, healed or not): said, not tried finer.
                 break
+        if closed and defects[1] and not defects[0]:
+            # edges no longer than the deflection in more than two triangles (a fold of a few
+            # micrometres where two faces' triangulations overlap around a node: lca 2003 with the
+            # model's labels, two edges of 3 um) collapse in the triangulation kept
+            v, t, b, r = self._triangles
+            t, b, r = _collapse_short_edges(v, t, b, r, key[0] * factor)
+            if len(t) < len(self._triangles[1]):
+                mended = _mesh_defects(v, t)
+                if mended[0] == 0 and mended[1] < defects[1]:
+                    self._triangles, defects = (v, t, b, r), mended
+                    ratio = self._volume_ratio()
         if defects[0]:
             warnings.warn(f"OCCT's triangulation of the solid has holes at deflections {0.6 * key[0]:.3g}-"
                           f"{key[0]:.3g} mm: the STL/GLB/trimesh will not be watertight (the B-rep is; "
@@ -890,7 +901,8 @@ class VesselSolid:
             triangles or too little volume make it redone once through a copy of
             the solid healed by ``ShapeFix_Shape`` and, if that is no better, once
             through a copy with its closed faces cut into open pieces
-            (:data:`MESH_DIVIDE_CLOSED_POINTS`), keeping the best. A
+            (:data:`MESH_DIVIDE_CLOSED_POINTS`), keeping the best; edges in more
+            than two triangles no longer than the deflection then collapse. A
             ``VesselcadWarning`` says what remains (docs/solids.md, "Meshes are
             derived products").
             False: OCCT's first triangulation as it is, for pictures (coarse
@@ -1042,6 +1054,46 @@ def _mesh_defects(verts: np.ndarray, tris: np.ndarray) -> tuple[int, int]:
         return 1, 0
     counts = _edge_use(verts, tris)[4]
     return int(np.sum(counts == 1)), int(np.sum(counts > 2))
+
+
+def _collapse_short_edges(verts: np.ndarray, tris: np.ndarray, branch: np.ndarray, role: np.ndarray,
+                         max_length: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Collapse the edges in more than two triangles that are at most ``max_length`` (mm) long.
+
+    Such an edge is below the triangulation's resolution (the linear deflection): a fold
+    where two faces' triangulations overlap around a node. The nodes of each group of such
+    edges become one (the first of them; nodes move by at most the group's length), and the
+    triangles that collapse with them are dropped. Returns the triangles (indices into
+    ``verts``, unchanged), branch ids and role codes; as given where there is no such edge.
+    """
+    ids, d, _owner, inv, counts = _edge_use(verts, tris)
+    e = d[counts[inv] > 2]
+    if not len(e):
+        return tris, branch, role
+    p = verts[_first_of(ids)[e]]
+    e = e[np.linalg.norm(p[:, 0] - p[:, 1], axis=1) <= max_length]
+    if not len(e):
+        return tris, branch, role
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    # groups of such edges: connected components of their nodes
+    n = int(ids.max()) + 1
+    g = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    k, comp = csgraph.connected_components(g, directed=False)
+    # each merged node's representative: the lowest id of its group, then its first node
+    lead = np.full(k, n)
+    np.minimum.at(lead, comp, np.arange(n))
+    t = _first_of(ids)[lead[comp[ids[tris]]]]
+    keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])
+    return t[keep], branch[keep], role[keep]
+
+
+def _first_of(ids: np.ndarray) -> np.ndarray:
+    """For each merged node id, the index of the first node that has it."""
+    first = np.full(int(ids.max()) + 1, -1)
+    first[ids[::-1]] = np.arange(len(ids))[::-1]
+    return first
 
 
 def _fill_small_holes(verts: np.ndarray, tris: np.ndarray, branch: np.ndarray, role: np.ndarray,
