@@ -634,26 +634,38 @@ def test_a_mesh_short_of_the_solid_is_healed_once_and_said(monkeypatch):
     assert len(said) == 1 and "covered only in part" in said[0] and "90.0% of the solid's volume" in said[0]
 
 
+def _data_tree_meshed(name: str, warn: str) -> tuple:
+    """The solid of a tree in tests/data (checked valid and closed) and its checked mesh, with
+    ``VesselcadWarning`` filtered by ``warn`` ("error": the mesh must need none)."""
+    import warnings
+
+    solid = vc.VesselTree.from_json(Path(__file__).parent / "data" / name).solid()
+    assert solid.check()["valid"] and solid.check()["watertight"]
+    with warnings.catch_warnings():
+        warnings.simplefilter(warn, vc.VesselcadWarning)
+        mesh = solid.to_trimesh()
+    return solid, mesh
+
+
+def _assert_mesh_holds(mesh, solid) -> None:
+    # the exact B-rep's volume and area (OCCT's integration), less what inscribed facets lose
+    assert mesh.volume == pytest.approx(solid.volume, rel=0.01)
+    assert mesh.area == pytest.approx(solid.area, rel=0.01)
+
+
 def test_faces_the_mesher_covers_in_part_are_meshed_healed():
     # tests/data/README.md: OCCT's mesher covers two periodic wall faces of this fused tree only
     # in part (one 51 of 221 mm²), the parts closing on each other along a line (edges in four
     # triangles, no hole), so the STL fell 19 % short of the solid. Meshed through a copy healed
     # by ShapeFix_Shape, the mesh holds the solid: volume and area within the deflection of
     # OCCT's own integration of the B-rep.
-    import warnings
-
     import vesselcad.kernel.solid as S
 
-    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "mesh_partial_rca_2111.json")
-    solid = tree.solid()
-    assert solid.check()["valid"] and solid.check()["watertight"]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", vc.VesselcadWarning)  # the line where faces meet is said
-        mesh = solid.to_trimesh()
+    # the line where faces meet is said
+    solid, mesh = _data_tree_meshed("mesh_partial_rca_2111.json", "ignore")
     assert solid._healed is not None
     assert all(tag.branch_id >= 0 for _f, tag in solid._healed[1])  # every healed face keeps its tag
-    assert mesh.volume == pytest.approx(solid.volume, rel=0.01)
-    assert mesh.area == pytest.approx(solid.area, rel=0.01)
+    _assert_mesh_holds(mesh, solid)
     assert S._mesh_defects(mesh.vertices, mesh.faces)[0] == 0  # no hole
     assert set(np.unique(mesh.face_attributes["branch"])) == set(solid.branch_ids)
 
@@ -663,25 +675,16 @@ def test_a_wall_whose_seam_a_child_opening_crosses_is_meshed_whole():
     # crosses the seam of a closed wall face, and OCCT's mesher covers that face only in part
     # (10 of its 53 mm^2), healed or not: the mesh closed but 5.9 % short of the solid. The
     # copy whose closed faces are cut into open pieces is meshed whole.
-    import warnings
-
     import vesselcad.kernel.solid as S
 
-    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "mesh_partial_rca_2104.json")
-    solid = tree.solid()
-    assert solid.check()["valid"] and solid.check()["watertight"]
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", vc.VesselcadWarning)  # nothing left to say
-        mesh = solid.to_trimesh()
+    solid, mesh = _data_tree_meshed("mesh_partial_rca_2104.json", "error")  # nothing left to say
     assert solid._repair == 2
     assert S._mesh_defects(mesh.vertices, mesh.faces) == (0, 0)
     # the divided copy fails BRepCheck (faces unorientable in its shell), so its triangulation
     # must show itself sound: one closed, consistently wound body of a tree's topology (a sphere's)
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.euler_number == 2
     assert len(mesh.split(only_watertight=False)) == 1
-    # the exact B-rep's volume and area (OCCT's integration), less what inscribed facets lose
-    assert mesh.volume == pytest.approx(solid.volume, rel=0.01)
-    assert mesh.area == pytest.approx(solid.area, rel=0.01)
+    _assert_mesh_holds(mesh, solid)
     assert set(np.unique(mesh.face_attributes["branch"])) == set(solid.branch_ids)
 
 
@@ -690,21 +693,13 @@ def test_edges_shorter_than_the_deflection_in_four_triangles_collapse():
     # meet, two faces' triangulations overlap around a node, leaving two edges of about 3 um in
     # four triangles each, healed or not. Below the deflection (about 6 um), they collapse: the
     # mesh is closed with every edge in two triangles, and encloses the solid.
-    import warnings
-
     import vesselcad.kernel.solid as S
 
-    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "mesh_fold_lca_2003.json")
-    solid = tree.solid()
-    assert solid.check()["valid"] and solid.check()["watertight"]
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", vc.VesselcadWarning)  # nothing left to say
-        mesh = solid.to_trimesh()
+    solid, mesh = _data_tree_meshed("mesh_fold_lca_2003.json", "error")  # nothing left to say
     assert S._mesh_defects(mesh.vertices, mesh.faces) == (0, 0)
     assert mesh.is_watertight and mesh.is_winding_consistent
     assert len(mesh.split(only_watertight=False)) == 1
-    assert mesh.volume == pytest.approx(solid.volume, rel=0.01)
-    assert mesh.area == pytest.approx(solid.area, rel=0.01)
+    _assert_mesh_holds(mesh, solid)
     # the collapse moved nodes by no more than the deflection: the mesh nodes near the fold lie
     # on the solid's boundary within it (OCCT's exact distance to its shell)
     from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
