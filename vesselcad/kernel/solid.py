@@ -1062,7 +1062,7 @@ def _collapse_short_edges(verts: np.ndarray, tris: np.ndarray, branch: np.ndarra
 
     Such an edge is below the triangulation's resolution (the linear deflection): a fold
     where two faces' triangulations overlap around a node. The nodes of each group of such
-    edges become one (the first of them; nodes move by at most the group's length), and the
+    edges become one of them (nodes move by at most the group's length), and the
     triangles that collapse with them are dropped. Returns the triangles (indices into
     ``verts``, unchanged), branch ids and role codes; as given where there is no such edge.
     """
@@ -1070,7 +1070,8 @@ def _collapse_short_edges(verts: np.ndarray, tris: np.ndarray, branch: np.ndarra
     e = d[counts[inv] > 2]
     if not len(e):
         return tris, branch, role
-    p = verts[_first_of(ids)[e]]
+    first = np.unique(ids, return_index=True)[1]  # the first node of each merged id (0, 1, ...)
+    p = verts[first[e]]
     e = e[np.linalg.norm(p[:, 0] - p[:, 1], axis=1) <= max_length]
     if not len(e):
         return tris, branch, role
@@ -1084,16 +1085,9 @@ def _collapse_short_edges(verts: np.ndarray, tris: np.ndarray, branch: np.ndarra
     # each merged node's representative: the lowest id of its group, then its first node
     lead = np.full(k, n)
     np.minimum.at(lead, comp, np.arange(n))
-    t = _first_of(ids)[lead[comp[ids[tris]]]]
+    t = first[lead[comp[ids[tris]]]]
     keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])
     return t[keep], branch[keep], role[keep]
-
-
-def _first_of(ids: np.ndarray) -> np.ndarray:
-    """For each merged node id, the index of the first node that has it."""
-    first = np.full(int(ids.max()) + 1, -1)
-    first[ids[::-1]] = np.arange(len(ids))[::-1]
-    return first
 
 
 def _fill_small_holes(verts: np.ndarray, tris: np.ndarray, branch: np.ndarray, role: np.ndarray,
