@@ -70,6 +70,14 @@ RETRY_CHILD_RADIUS_SHARE = 0.7
 #: not change; docs/solids.md, "Junctions OCCT cannot finish"). None: no neck.
 END_NECK_SHARE: float | None = 0.5
 END_NECK_RADII = 0.5
+#: A child that starts at its parent's end and would swallow it (its circle around the parent's
+#: somewhere short of the parent's end: a junction's blob widens both) is kept within this share
+#: of the parent's radius while its axis runs along the parent's inside it (within half the
+#: parent's radius of its axis); it then leaves through the parent's domed end and takes its own
+#: radius again within about 2 mm. Else the two walls cross at a grazing angle all round
+#: and OCCT's fuse can leave them touching along a line (end-to-end cs 2111 with true labels).
+#: None: not kept inside.
+END_INSIDE_SHARE: float | None = 0.9
 #: Siblings that start at their parent's end get lead-ins from staggered depths inside it: the
 #: first one parent radius back, each next END_STAGGER_RADII radius less (at least 0.4 radius: the
 #: neck, END_NECK_RADII long, stays inside the parent).
@@ -824,7 +832,9 @@ class VesselTree:
                     by_id[b.parent]["end"] = "dome"
                     by_id[b.parent]["warnings"].append("its children start at its end: closed there "
                                                        "with a hemisphere, not a disc")
-            law, w = _clamp_radius(spine, law, r_parent)
+            keep_inside = at_end and END_INSIDE_SHARE is not None
+            law, w = _clamp_radius(spine, law, r_parent, inside=swept[b.parent] if keep_inside else None,
+                                   inside_share=END_INSIDE_SHARE or 0.0)
             warns += w
             neck, unnecked = 0.0, law
             if at_end and END_NECK_SHARE is not None:
@@ -1575,15 +1585,23 @@ def _smooth_kinks(spine: interpolate.BSpline, law: interpolate.BSpline
 
 
 def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent: float | None,
-                  share: float = CHILD_RADIUS_SHARE) -> tuple[interpolate.BSpline, list[str]]:
+                  share: float = CHILD_RADIUS_SHARE, inside: TreeBranch | None = None,
+                  inside_share: float = 0.9) -> tuple[interpolate.BSpline, list[str]]:
     """Radius law clamped against curvature (no folding) and, for a child whose parent has
-    radius ``r_parent`` at its start, below ``share`` of the parent's radius there."""
+    radius ``r_parent`` at its start, below ``share`` of the parent's radius there.
+
+    With ``inside`` (the parent, as swept, of a child that starts at its end), where the
+    child would swallow the parent's end, its wall is also kept within ``inside_share`` of
+    the parent's radius wherever its axis runs along the parent's, short of the parent's
+    end (:func:`_inside_limit`, :data:`END_INSIDE_SHARE`).
+    """
     k = spine.k
     a, e = float(spine.t[k]), float(spine.t[-k - 1])
     s = np.linspace(a, e, max(int((e - a) / 0.1), 8) + 1)
     r = np.asarray(law(s)).reshape(-1)
     curv_lim = CURVATURE_FACTOR / np.maximum(curvature(spine, s), 1e-9)
     limit = curv_lim
+    back = np.zeros(len(s), bool)  # where the limit is kept inside the parent: widened backwards only
     warnings = []
     if r_parent is not None:
         ramp = np.clip((s - a) / max(2.0 * r_parent, 1e-6), 0.0, 1.0)
@@ -1592,6 +1610,16 @@ def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent
             warnings.append(f"start radius {r[0]:.2f} mm reduced to {start_lim[0]:.2f} mm "
                             f"({share:.0%} of the parent's) so it starts inside the parent")
         limit = np.minimum(limit, start_lim)
+    if inside is not None:
+        along, swallows = _inside_limit(spine, s, r, inside, inside_share)
+        if swallows:
+            back = along < limit
+            over = back & (r > along * 1.05)
+            if over.any():
+                warnings.append(f"radius kept within {inside_share:.0%} of its parent's over "
+                                f"{s[over].min() - a:.1f}-{s[over].max() - a:.1f} mm, where it runs along "
+                                "it inside its end (it would have swallowed the parent's end)")
+            limit = np.minimum(limit, along)
     if np.any(r > curv_lim):
         bad = s[r > curv_lim]
         warnings.append(f"radius reduced by up to {float(np.max(r - curv_lim)):.2f} mm over "
@@ -1601,16 +1629,53 @@ def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent
         return law, warnings
     # Subtract a smooth reduction that covers the clamp (a max filter widened by
     # 1.5 mm, then a 0.5 mm Gaussian), so the refit does not ring; where the fit
-    # still overshoots the limit, deepen the reduction there and fit again.
+    # still overshoots the limit, deepen the reduction there and fit again. The limit
+    # inside a parent's end is widened towards the child's start only (0.5 mm forward):
+    # past the parent's end the child is seen, and takes its own radius again within ~2 mm.
     step = float(s[1] - s[0])
     need = np.maximum(r - limit, 0.0)
+    half = int(round(1.5 / step))
+    m, fwd = int(round(1.0 / step)), int(round(0.5 / step))  # 1.5 mm back, 0.5 mm forward
     for _ in range(8):
-        wide = ndimage.maximum_filter1d(need, 2 * int(round(1.5 / step)) + 1, mode="nearest")
+        wide = np.maximum(
+            ndimage.maximum_filter1d(np.where(back, 0.0, need), 2 * half + 1, mode="nearest"),
+            ndimage.maximum_filter1d(np.where(back, need, 0.0), 2 * m + 1, origin=fwd - m, mode="nearest"))
         target = r - ndimage.gaussian_filter1d(wide, 0.5 / step, mode="nearest")
         spl = fit_pspline(s, target[:, None], 0.5, 0.0, domain=(a, e))
         excess = np.asarray(spl(s)).reshape(-1) - limit
         if excess.max() <= 1e-3 * float(np.min(limit)):
             break
         need = need + np.maximum(excess, 0.0)
-    c = np.maximum(np.asarray(spl.c), MIN_RADIUS_MM)
+    lowest = MIN_RADIUS_MM
+    if back.any():
+        # the steep notch inside the parent must not ring below half its radius (the neck's
+        # depth) at the child's start
+        lowest = max(lowest, min(0.5 * float(r_parent), float(limit.min())))
+    c = np.maximum(np.asarray(spl.c), lowest)
     return interpolate.BSpline(spl.t, c, spl.k), warnings
+
+
+def _inside_limit(spine: interpolate.BSpline, s: np.ndarray, r: np.ndarray, parent: TreeBranch, share: float
+                  ) -> tuple[np.ndarray, bool]:
+    """Largest radius (mm) at the spine parameters ``s`` of a child starting at ``parent``'s
+    end that keeps its wall within ``share`` of the parent's radius (inf where no limit
+    applies), and whether the child's radii ``r`` there swallow the parent short of its end
+    (a circle of the child around the parent's).
+
+    It applies where the child's axis lies within half the parent's radius of the parent's
+    axis and projects onto the parent short of its end. A child that starts at its parent's
+    end runs along the parent's axis from inside it (``_start_inside``'s lead-in); were it
+    wider than the parent there (a junction's blob widens both), its wall would cross the
+    parent's at a grazing angle all round, and OCCT's fuse can leave the two walls touching
+    along a line (end-to-end cs 2111 with true labels: the STL's 101 edges in four
+    triangles). Kept inside, the child leaves through the parent's domed end, at a steep angle.
+    """
+    pts = spine(s)
+    sp = _project_params(parent.spline, pts)
+    pe = float(parent.domain[1])
+    off = np.linalg.norm(pts - parent.spline(sp), axis=1)
+    rp = np.asarray(parent.radius_at(sp), float).reshape(-1)
+    before_end = sp < pe - 1e-6
+    along = before_end & (off <= 0.5 * rp)
+    swallows = bool(np.any(before_end & (r >= rp + off)))
+    return np.where(along, share * rp - off, np.inf), swallows
