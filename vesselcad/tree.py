@@ -788,7 +788,8 @@ class VesselTree:
         Rebuilds (and merges) if needed, clamps the radius against curvature and
         at child starts, and moves a child's start onto its parent's centreline
         when it lies off it. Returns dicts ``{'id', 'name', 'parent', 'spine',
-        'radius', 'cuts', 'end', 'warnings', 'stubs', 'r_parent', 'neck_mm', 'radius_unnecked'}``;
+        'radius', 'cuts', 'end', 'warnings', 'stubs', 'r_parent', 'neck_mm', 'radius_unnecked',
+        'not_inside'}``;
         ``cuts`` are the spine parameters (mm)
         where a pipe that would overlap itself is cut into pieces (empty for
         almost every branch); ``end`` is ``'dome'`` for a vessel whose children
@@ -804,7 +805,10 @@ class VesselTree:
         starting at its parent's end, ``END_NECK_SHARE``; else 0): the radius law
         there is not the vessel's, and the surface does not show it;
         ``radius_unnecked`` is the law before that (the same object where
-        there is no neck).
+        there is no neck); ``not_inside`` is None, or, for a child kept inside
+        its parent's end (``END_INSIDE_SHARE``: it would have swallowed it),
+        the law and neck length it would have had otherwise (:meth:`solid`
+        tries it where the union with the child kept inside fails).
         """
         tree = self.rebuilt(tol_mm) if not all(b.is_fitted for b in self.branches) else self
         tree = _reattached(tree)
@@ -833,22 +837,22 @@ class VesselTree:
                     by_id[b.parent]["end"] = "dome"
                     by_id[b.parent]["warnings"].append("its children start at its end: closed there "
                                                        "with a hemisphere, not a disc")
-            keep_inside = at_end and END_INSIDE_SHARE is not None
-            law, w = _clamp_radius(spine, law, r_parent, inside=swept[b.parent] if keep_inside else None,
-                                   inside_share=END_INSIDE_SHARE or 0.0)
+            plain = None  # the law not kept inside the parent's end, where it is
+            if at_end and END_INSIDE_SHARE is not None:
+                law, w, plain = _keep_inside(spine, law, r_parent, swept[b.parent], END_INSIDE_SHARE)
+            else:
+                law, w = _clamp_radius(spine, law, r_parent)
             warns += w
-            neck, unnecked = 0.0, law
-            if at_end and END_NECK_SHARE is not None:
-                necked = _neck(law, r_parent, END_NECK_SHARE, END_NECK_RADII * r_parent)
-                if necked is not law:
-                    law, neck = necked, END_NECK_RADII * r_parent
+            unnecked = law
+            law, neck = _necked(law, r_parent, at_end)
             w, cuts = _self_approach(spine, law)
             warns += w
             swept[bid] = replace(b, spline=spine, radius_law=law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
                           "radius": law, "cuts": cuts, "end": "flat", "warnings": warns,
                           "stubs": stubs.get(b.id, {}), "r_parent": r_parent, "neck_mm": neck,
-                          "radius_unnecked": unnecked})
+                          "radius_unnecked": unnecked,
+                          "not_inside": None if plain is None else _necked(plain, r_parent, at_end)})
             by_id[b.id] = specs[-1]
         if INLET_CLEARANCE_RADII is not None:
             for spec in specs:
@@ -945,36 +949,45 @@ class VesselTree:
                             for s in roots if s["id"] in failed)
             raise GeometryError(f"tree: no pipe could be built ({why or 'no branches'})")
         by_id = {s["id"]: s for s in specs}
-        narrowed: dict[int, tuple[Any, interpolate.BSpline]] = {}
+        narrowed: dict[int, tuple[Any, interpolate.BSpline, float, str]] = {}
 
         def narrower(p: Any) -> tuple[Any, str] | None:
-            """The branch's pipe once more, its start narrowed to RETRY_CHILD_RADIUS_SHARE of
-            its parent's radius (a second try where OCCT's union fails or hangs)."""
+            """The branch's pipe once more (a second try where OCCT's union fails or hangs): a
+            child kept inside its parent's end with its law as clamped, not kept inside; any
+            other child with its start narrowed to RETRY_CHILD_RADIUS_SHARE of its parent's radius."""
             s = by_id.get(p.branch_id)
             if s is None or s.get("r_parent") is None:
                 return None
-            law, _ = _clamp_radius(s["spine"], s["radius"], s["r_parent"], RETRY_CHILD_RADIUS_SHARE)
-            if law is s["radius"]:
-                return None  # already that narrow: nothing to try
+            neck = s.get("neck_mm", 0.0)
+            if s.get("not_inside") is not None:
+                law, neck = s["not_inside"]
+                note = "tried again not kept inside its parent's end"
+                said = ("not kept inside its parent's end: OCCT's union with it kept inside failed or did "
+                        "not finish")
+            else:
+                law, _ = _clamp_radius(s["spine"], s["radius"], s["r_parent"], RETRY_CHILD_RADIUS_SHARE)
+                if law is s["radius"]:
+                    return None  # already that narrow: nothing to try
+                r0 = float(np.asarray(s["radius"](s["spine"].t[s["spine"].k])).reshape(-1)[0])
+                r1 = float(np.asarray(law(s["spine"].t[s["spine"].k])).reshape(-1)[0])
+                note = (f"tried again with its start narrowed from {r0:.2f} to {r1:.2f} mm "
+                        f"({RETRY_CHILD_RADIUS_SHARE:.0%} of its parent's radius)")
+                said = (f"start narrowed to {RETRY_CHILD_RADIUS_SHARE:.0%} of its parent's radius: OCCT's "
+                        "union with the wider start failed or did not finish")
             try:
                 q = branch_pipe(s["id"], s["name"], s["parent"], s["spine"], law, station_step_mm,
-                                s.get("cuts", ()), s.get("end", "flat"), s.get("seam_deg", 0.0),
-                                s.get("neck_mm", 0.0))
+                                s.get("cuts", ()), s.get("end", "flat"), s.get("seam_deg", 0.0), neck)
             except Exception:  # noqa: BLE001 - no second pipe: the branch is left out as it was
                 return None
-            narrowed[s["id"]] = (q, law)
-            r0 = float(np.asarray(s["radius"](s["spine"].t[s["spine"].k])).reshape(-1)[0])
-            r1 = float(np.asarray(law(s["spine"].t[s["spine"].k])).reshape(-1)[0])
-            return q, (f"tried again with its start narrowed from {r0:.2f} to {r1:.2f} mm "
-                       f"({RETRY_CHILD_RADIUS_SHARE:.0%} of its parent's radius)")
+            narrowed[s["id"]] = (q, law, neck, said)
+            return q, note
 
         out = fuse_pipes(pipes, retry=narrower)
-        for q in out.pipes:  # a branch that went in narrowed: its spec says so
+        for q in out.pipes:  # a branch that went in on its second try: its spec says so
             if q.branch_id in narrowed and narrowed[q.branch_id][0] is q:
                 spec = by_id[q.branch_id]
-                spec["radius"] = narrowed[q.branch_id][1]
-                spec["warnings"].append(f"start narrowed to {RETRY_CHILD_RADIUS_SHARE:.0%} of its parent's "
-                                        "radius: OCCT's union with the wider start failed or did not finish")
+                _, spec["radius"], spec["neck_mm"], said = narrowed[q.branch_id]
+                spec["warnings"].append(said)
         out.failed = {**failed, **out.failed}
         out.warnings = warnings + _contacts(specs) + out.warnings
         out.timings_s = {"rebuild": t1 - t0, "pipes": t2 - t1, **out.timings_s}
@@ -1108,6 +1121,17 @@ def _truncated(spline: interpolate.BSpline, x: float) -> interpolate.BSpline:
     n = len(knots) - k - 1
     coef = np.stack([cc[:n] for cc in cols], axis=1).reshape((n, *c.shape[1:]))
     return interpolate.BSpline(knots, coef, k)
+
+
+def _necked(law: interpolate.BSpline, r_parent: float | None, at_end: bool
+            ) -> tuple[interpolate.BSpline, float]:
+    """A child's law necked at its start where it starts at its parent's end
+    (:data:`END_NECK_SHARE`), and the neck's length (0: none)."""
+    if at_end and r_parent is not None and END_NECK_SHARE is not None:
+        out = _neck(law, r_parent, END_NECK_SHARE, END_NECK_RADII * r_parent)
+        if out is not law:
+            return out, END_NECK_RADII * r_parent
+    return law, 0.0
 
 
 def _neck(law: interpolate.BSpline, r_parent: float, share: float, length: float) -> interpolate.BSpline:
@@ -1585,20 +1609,25 @@ def _smooth_kinks(spine: interpolate.BSpline, law: interpolate.BSpline
                   f"radius / {CURVATURE_FACTOR}"]
 
 
+def _clamp_samples(spine: interpolate.BSpline) -> np.ndarray:
+    """The spine parameters (about 0.1 mm apart) on which radius limits are laid."""
+    k = spine.k
+    a, e = float(spine.t[k]), float(spine.t[-k - 1])
+    return np.linspace(a, e, max(int((e - a) / 0.1), 8) + 1)
+
+
 def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent: float | None,
-                  share: float = CHILD_RADIUS_SHARE, inside: TreeBranch | None = None,
-                  inside_share: float = 0.9) -> tuple[interpolate.BSpline, list[str]]:
+                  share: float = CHILD_RADIUS_SHARE, along: np.ndarray | None = None
+                  ) -> tuple[interpolate.BSpline, list[str]]:
     """Radius law clamped against curvature (no folding) and, for a child whose parent has
     radius ``r_parent`` at its start, below ``share`` of the parent's radius there.
 
-    With ``inside`` (the parent, as swept, of a child that starts at its end), where the
-    child would swallow the parent's end, its wall is also kept within ``inside_share`` of
-    the parent's radius wherever its axis runs along the parent's, short of the parent's
-    end (:func:`_inside_limit`, :data:`END_INSIDE_SHARE`).
+    ``along``: a further limit on :func:`_clamp_samples` (mm, inf where none) that keeps a
+    child inside its parent's end (:func:`_keep_inside`): its reduction is widened towards
+    the child's start only.
     """
-    k = spine.k
-    a, e = float(spine.t[k]), float(spine.t[-k - 1])
-    s = np.linspace(a, e, max(int((e - a) / 0.1), 8) + 1)
+    s = _clamp_samples(spine)
+    a, e = float(s[0]), float(s[-1])
     r = np.asarray(law(s)).reshape(-1)
     curv_lim = CURVATURE_FACTOR / np.maximum(curvature(spine, s), 1e-9)
     limit = curv_lim
@@ -1611,20 +1640,8 @@ def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent
             warnings.append(f"start radius {r[0]:.2f} mm reduced to {start_lim[0]:.2f} mm "
                             f"({share:.0%} of the parent's) so it starts inside the parent")
         limit = np.minimum(limit, start_lim)
-    if inside is not None:
-        # whether the law as clamped at its start swallows the parent (its start alone, kept
-        # within ``share``, does not)
-        plain, plain_warnings = _clamp_radius(spine, law, r_parent, share)
-        kept = np.asarray(plain(s)).reshape(-1)
-        along, swallows = _inside_limit(spine, s, kept, inside, inside_share)
-        if not swallows:
-            return plain, plain_warnings
+    if along is not None:
         back = along < limit
-        over = back & (kept > along * 1.05)
-        if over.any():
-            warnings.append(f"radius kept within {inside_share:.0%} of its parent's over "
-                            f"{s[over].min() - a:.1f}-{s[over].max() - a:.1f} mm, where it runs along "
-                            "it inside its end (it would have swallowed the parent's end)")
         limit = np.minimum(limit, along)
     if np.any(r > curv_lim):
         bad = s[r > curv_lim]
@@ -1659,6 +1676,27 @@ def _clamp_radius(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent
         lowest = max(lowest, min(0.5 * float(r_parent), float(limit.min())))
     c = np.maximum(np.asarray(spl.c), lowest)
     return interpolate.BSpline(spl.t, c, spl.k), warnings
+
+
+def _keep_inside(spine: interpolate.BSpline, law: interpolate.BSpline, r_parent: float, parent: TreeBranch,
+                 share: float) -> tuple[interpolate.BSpline, list[str], interpolate.BSpline | None]:
+    """The radius law of a child that starts at ``parent``'s end, clamped (:func:`_clamp_radius`)
+    and, where it would swallow the parent's end, kept within ``share`` of the parent's radius
+    while it runs along it inside it (:data:`END_INSIDE_SHARE`); its warnings; and the law
+    clamped but not kept inside where it was (else None)."""
+    plain, warnings = _clamp_radius(spine, law, r_parent)
+    s = _clamp_samples(spine)
+    kept = np.asarray(plain(s)).reshape(-1)
+    along, swallows = _inside_limit(spine, s, kept, parent, share)  # its start alone, held, does not
+    if not swallows:
+        return plain, warnings, None
+    inside, warnings = _clamp_radius(spine, law, r_parent, along=along)
+    over = kept > along * 1.05
+    if over.any():
+        warnings.append(f"radius kept within {share:.0%} of its parent's over {s[over].min() - s[0]:.1f}-"
+                        f"{s[over].max() - s[0]:.1f} mm, where it runs along it inside its end (it would "
+                        "have swallowed the parent's end)")
+    return inside, warnings, plain
 
 
 def _inside_limit(spine: interpolate.BSpline, s: np.ndarray, r: np.ndarray, parent: TreeBranch, share: float
