@@ -11,6 +11,9 @@
 - seg_real_1024.png: the bundled model's labels of a real 1024² 10-bit angiogram (NEMA WG04 XA1)
   on the frame as stored and on the frame reduced to 512² as ``reconstruct`` does (``--large``
   makes only this one).
+- junction_kept_inside.png: the junction of branches 16 and 9 of tests/data/mesh_partial_rca_2111.json
+  (cs 2111), meshed as fused before and after children that would swallow their parent's end were
+  kept inside it (``--junction`` makes only this one).
 - report_html.png: ``vesselcad demo``'s report.html as headless Chromium shows it (offline);
   only with ``--report`` (needs Chromium and playwright, as tests/test_report_browser.py).
 """
@@ -319,6 +322,49 @@ def surface_figure(path: Path) -> None:
     plt.close(fig)
 
 
+def junction_figure(path: Path) -> None:
+    """cs 2111's junction of branch 16 and its child 9, as fused without and with END_INSIDE_SHARE."""
+    import warnings
+
+    import vesselcad.tree as vt
+
+    data = HERE.parent / "tests" / "data" / "mesh_partial_rca_2111.json"
+    centre = np.array([1.6, -6.3, 40.6])  # branch 16's end
+    fig = plt.figure(figsize=(12, 5.6))
+    for k, share in enumerate((None, vt.END_INSIDE_SHARE)):
+        saved, vt.END_INSIDE_SHARE = vt.END_INSIDE_SHARE, share
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", vc.VesselcadWarning)
+                solid = vc.VesselTree.from_json(data).solid()
+                mesh = solid.to_trimesh(tolerance=0.02, check_closed=False)  # the fused shape's own mesh
+        finally:
+            vt.END_INSIDE_SHARE = saved
+        near = np.linalg.norm(mesh.triangles_center - centre, axis=1) < 7.0
+        sub = mesh.submesh([np.flatnonzero(near)], append=True)
+        v, f = sub.vertices, sub.faces
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=f, linewidth=0.0, shade=True,
+                        color="tab:red" if share is None else "tab:blue")
+        for lim, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre, strict=True):
+            lim(c - 6.0, c + 6.0)
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=15, azim=-110)
+        ax.set_xlabel("x mm")
+        ax.set_ylabel("y mm")
+        ax.set_zlabel("z mm")
+        what = ("as measured (before): OCCT's mesher covers its walls in part" if share is None
+                else f"child kept within {share:.0%} of the parent inside its end (now)")
+        ax.set_title(f"{what}\nB-rep {solid.volume:.0f} mm³, the mesh as fused, within 7 mm of 16's end",
+                     fontsize=10)
+    fig.suptitle("cs 2111 (true labels): child 9 starts at the end of branch 16, both widened by the "
+                 "junction's blob.\nAs measured its wall grazed the parent's all round; the fused walls "
+                 "touched along a line (the B-rep 3.6 % larger than its tubes)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main() -> int:
     out = HERE / "img"
     out.mkdir(exist_ok=True)
@@ -331,6 +377,9 @@ def main() -> int:
     if "--large" in sys.argv[1:]:
         large_frame_figure(out / "seg_real_1024.png")
         return 0
+    if "--junction" in sys.argv[1:]:
+        junction_figure(out / "junction_kept_inside.png")
+        return 0
     if "--report" in sys.argv[1:]:
         report_screenshot(out / "report_html.png")
         return 0
@@ -342,6 +391,7 @@ def main() -> int:
     centreline_graph_real(out / "centreline_graph_real.png")
     surface_figure(out / "surface_prior.png")
     large_frame_figure(out / "seg_real_1024.png")
+    junction_figure(out / "junction_kept_inside.png")
     print("wrote", *sorted(p.name for p in out.glob("*.png")))
     return 0
 
