@@ -248,6 +248,14 @@ def union_sdf(tubes: list[Tube | Dome], p: np.ndarray) -> np.ndarray:
     return np.min(np.stack([t.sdf(p) for t in tubes]), axis=0)
 
 
+def solid_tubes(solid: vc.VesselSolid) -> list[Tube | Dome]:
+    """The analytic tubes (split where a pipe comes back near itself) and domes of the
+    branches a solid holds, from the spines and radius laws they were swept along."""
+    kept = [s for s in solid.specs if s["id"] not in solid.failed]
+    tubes: list[Tube | Dome] = [p for s in kept for p in without_self_approach(Tube.from_spec(s))]
+    return tubes + [Dome.from_spec(s) for s in kept if s.get("end") == "dome"]
+
+
 def reference_volume(tubes: list[Tube | Dome]) -> float:
     import manifold3d as mf
 
@@ -272,10 +280,7 @@ def measure(anatomy: str, seed: int, render_dir: Path | None = None, twigs: int 
     solid = tree.solid()
     seconds = time.perf_counter() - t0
     chk = solid.check()
-    tubes = [p for s in solid.specs if s["id"] not in solid.failed
-             for p in without_self_approach(Tube.from_spec(s))]
-    tubes += [Dome.from_spec(s) for s in solid.specs
-              if s["id"] not in solid.failed and s.get("end") == "dome"]
+    tubes = solid_tubes(solid)
     # B-rep -> analytic: tessellation nodes lie on the exact surface.
     fine = solid.to_trimesh(tolerance=FINE_TOL_MM, angular_deflection=0.15)
     d_fwd = np.abs(union_sdf(tubes, np.asarray(fine.vertices)))
