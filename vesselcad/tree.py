@@ -1000,21 +1000,26 @@ def _cut_short(spec: dict[str, Any], station_step_mm: float, why: str) -> Any:
     """The pipe of a branch that overlaps itself, up to where it first comes back near itself (None
     if that fails too).
 
-    Where OCCT's union of the pieces of such a pipe fails (a vessel that turns
-    back on itself with its two legs a fraction of a radius apart: a doubled
-    stretch of a reconstruction, model lca 2021), the branch keeps the part
-    before it comes back near itself, with an open end there, rather than
-    being left out with all its children. ``spec`` is changed to match
-    (spine, radius law, no cuts, a flat end) and says so in its warnings.
+    Where OCCT's union of the pieces of such a pipe fails or loses a piece (a
+    vessel that turns back on itself with its two legs a fraction of a radius
+    apart: a doubled stretch of a reconstruction, model lca 2021, true-label
+    rca 2104), the branch keeps its longest start that does not overlap itself:
+    up to the sample before the first one whose wall meets the wall of an
+    earlier stretch (a hairpin keeps its first leg, a loop all of itself but
+    the stretch that crosses back), with an open end there, rather than being
+    left out with all its children. ``spec`` is changed to match (spine,
+    radius law, no cuts, a flat end) and says so in its warnings.
     """
     from .kernel.pipes import branch_pipe
 
     spine, law = spec["spine"], spec["radius"]
     a, e = float(spine.t[spine.k]), float(spine.t[-spine.k - 1])
-    s, _, _, i, _, _ = _overlaps(spine, law)
+    s, _, _, i, j, _ = _overlaps(spine, law)
     if len(i) == 0:
         return None
-    cut = float(s[i].min())  # where it first comes within the two radii of a later stretch of itself
+    # the last sample before the first one whose wall meets an earlier stretch of the wall:
+    # the longest start that does not overlap itself
+    cut = float(s[max(int(j.min()) - 1, 0)])
     neck = float(spec.get("neck_mm", 0.0))
     if not neck + 0.5 < cut - a:
         return None
@@ -1025,8 +1030,8 @@ def _cut_short(spec: dict[str, Any], station_step_mm: float, why: str) -> Any:
     except Exception:  # noqa: BLE001 - no shorter pipe either: the branch is left out as it was
         return None
     spec.update(spine=spine, radius=law, cuts=[], end="flat")
-    spec["warnings"].append(f"cut short at {cut - a:.1f} of {e - a:.1f} mm, where it starts to come back "
-                            f"near itself: OCCT's union of its pieces failed ({why})")
+    spec["warnings"].append(f"cut short at {cut - a:.1f} of {e - a:.1f} mm, where it comes back near "
+                            f"itself: OCCT's union of its pieces failed ({why})")
     return pipe
 
 
