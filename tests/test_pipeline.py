@@ -696,6 +696,44 @@ def test_a_gap_beyond_the_moving_reach_is_bridged_along_both_skeletons(monkeypat
     assert results[1].parent is None
 
 
+def test_a_branch_that_runs_towards_its_parent_is_joined_from_its_end(monkeypatch):
+    # The child of the tests above, paired from 4 to 18 mm along it but walked the wrong way
+    # (from 18 mm back to 4 mm: a pair grown from a seed has no proximal end to go by). Joined at
+    # its start, the skeleton path from the fork F runs over the branch's own pieces and the
+    # bridge along it, then the branch back along the bridge: a centreline folded onto itself
+    # (true labels rca 2104). Such a branch is joined from its end instead: turned round, its
+    # start moved onto F, running outward from F without coming back.
+    import vesselcad.pipeline as pipeline
+
+    s = np.linspace(0.0, 1.0, 121)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
+    child = s * [0.0, 25.0, 15.0]                                   # from F = (0, 0, 0)
+    along = np.linalg.norm(child, axis=1)
+    seen = child[(along >= 4.0) & (along <= 18.0)][::-1]            # 18 mm -> 4 mm
+    graphs = _drawn_graphs((parent, 1.5), (child, 1.0))
+
+    def joined():
+        results = [_branch(0, parent), _branch(1, seen)]
+        pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
+        return results[1]
+
+    b = joined()
+    assert b.parent == 0
+    far = np.linalg.norm(b.points_mm, axis=1)                       # distance from F
+    assert far[0] < 0.5 and far[-1] == pytest.approx(18.0, abs=0.3)
+    assert np.all(np.diff(far) > 0.0)                               # outward all the way
+    assert distance_to_polyline(b.points_mm, child).max() < 0.3
+    assert "from its end" in b.warnings[-1]
+    np.testing.assert_array_equal(b.pair.points_a_px, VIEW_A.project(seen)[::-1])
+    assert b.reprojection.mean_px < 0.5
+    # not checked: bridged from its start, and folded back on itself
+    monkeypatch.setattr(pipeline, "OWN_WALK_PX", None)
+    b = joined()
+    far = np.linalg.norm(b.points_mm, axis=1)
+    assert b.parent == 0 and "the gap bridged" in b.warnings[-1]
+    assert far.max() > 17.0 and far[-1] < 4.5                       # out to 18 mm and back to 4
+
+
 def test_a_bridge_whose_two_paths_are_not_one_vessel_is_not_built():
     # The same gap, but view B's path runs through a point 12 mm off the child (another vessel,
     # as where a skeleton path turns at a crossing): no 3D curve lies on both paths, the

@@ -94,6 +94,13 @@ MAX_BRIDGE_MM: float | None = 20.0
 BRIDGE_MAX_PX = 1.0
 #: How the warning of a branch joined that way begins (the report's overlay marks its start).
 JOINED_NOTE = "joined across"
+#: A skeleton path from the other branch to a branch's start that runs more than this many
+#: pixels (in either view, its last ``JOIN_PX`` aside) within ``JOIN_PX`` of the branch's own
+#: 2D piece walks back over the branch: the branch runs towards the other one, and joining its
+#: start would fold the centreline back on itself (true labels rca 2104: a 14 mm bridge out
+#: and the branch back along it, 0.05 mm apart). Such a branch without children is joined
+#: the other way round, from its end, where a path from there qualifies; None: not checked.
+OWN_WALK_PX: float | None = 3.0 * JOIN_PX
 #: A 3D branch whose points lie, by their median, farther from the heart's surface fitted by the
 #: matching (``GraphMatch.surface``) than ``OFF_SURFACE_SIGMAS`` times that fit's spread, and at
 #: least ``OFF_SURFACE_MIN_MM``, is left out (``reconstruct(off_surface_sigmas=...)``): a pairing of
@@ -606,17 +613,28 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
 
     links: dict[int, tuple[int, int, str]] = {}
     walks: dict[tuple[int, int], Any] = {}
+    flips: set[tuple[int, int]] = set()  # joins that take the branch the other way round
 
     def accept(candidates: list[tuple[float, int, int, int, str]]) -> None:
+        turned: set[int] = set()  # branches turned round in this batch (its indices are to them as were)
         for _cost, c, p, i, why in sorted(candidates):
             if c in links:
                 continue
             rc, rp = find(c), find(p)
             if rc == rp:
                 continue
+            if p in turned:
+                i = len(by_id[p].points_mm) - 1 - i
             root[rc] = rp
             links[c] = (p, i, why)
             by_id[c].parent = p
+            if (c, p) in flips:
+                _reverse(by_id[c], views)
+                turned.add(c)
+                n = len(by_id[c].points_mm)
+                for x, (q, j, w) in list(links.items()):  # its children so far leave it where they did
+                    if q == c:
+                        links[x] = (q, n - 1 - j, w)
 
     accept(cand)
     if views is not None:
@@ -624,7 +642,7 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         if graphs is not None and SKELETON_DETOUR is not None:
             known = roots is not None and None not in roots
             ostium = {b.id for b in ok if known and b.pair.start == tuple(roots)}
-            accept(_joins_along_skeletons(ok, views, graphs, set(links) | ostium, find, walks))
+            accept(_joins_along_skeletons(ok, views, graphs, set(links) | ostium, find, walks, flips))
     if adjust is not None:
         adjust()
     def depth(c: int) -> int:
@@ -826,12 +844,15 @@ def _joins_in_both_views(ok: list[BranchResult], views: tuple[CArmView, CArmView
 def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmView],
                            graphs: tuple[CentrelineGraph, CentrelineGraph], linked: set[int],
                            tree_of: Callable[[int], int],
-                           paths: dict[tuple[int, int], Any] | None = None
+                           paths: dict[tuple[int, int], Any] | None = None,
+                           flips: set[tuple[int, int]] | None = None
                            ) -> list[tuple[float, int, int, int, str]]:
     """Candidate links across a stretch the matching left unpaired: (gap mm, child, parent,
     index of the parent's point, note); ``paths``, if given, receives each candidate's two
     skeleton paths (px, from the parent's point to the child's start, each with a flag per
-    sample: a skeleton pixel where branches meet) under (child, parent).
+    sample: a skeleton pixel where branches meet) under (child, parent); ``flips``, if
+    given, receives (child, parent) for the candidates that join the child from its end
+    (the paths then lead to its end, which becomes its start when the link is accepted).
 
     For each branch without a parent (not in ``linked``: those linked already, and the
     one starting at the ostium, which stays its tree's root), the nearest 3D point of
@@ -842,7 +863,9 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
     projections and runs between them no longer than :data:`SKELETON_DETOUR` times the straight line plus
     :data:`SKELETON_DETOUR_PX`: the two pieces are one vessel in both images, not two
     vessels that pass close in 3D (those join in the images, if at all, by a detour
-    through other vessels).
+    through other vessels). A path that walks back over the branch's own 2D piece
+    (:data:`OWN_WALK_PX`) is no candidate: the branch runs towards the other one; one
+    without children is then tried from its end, which must qualify the same way.
     """
     from scipy import sparse
     from scipy.sparse import csgraph
@@ -850,20 +873,23 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
     from .centreline2d import _pixel_graph
 
     reach = MAX_JOIN_GAP_MM if MAX_BRIDGE_MM is None else max(MAX_BRIDGE_MM, MAX_JOIN_GAP_MM)
-    cands = []
-    for c in ok:
-        if c.id in linked:
-            continue
-        start = c.points_mm[0]
+
+    def candidates(c: BranchResult, back: bool) -> list[tuple[float, BranchResult, BranchResult, int, bool]]:
+        start = c.points_mm[-1 if back else 0]
+        out = []
         for p in ok:
             if tree_of(p.id) == tree_of(c.id):
                 continue
             d = np.linalg.norm(p.points_mm - start, axis=1)
             i = int(np.argmin(d))
             if d[i] <= reach and _length(p.points_mm[:i + 1]) > p.radius_mm[0]:
-                cands.append((float(d[i]), c, p, i))
+                out.append((float(d[i]), c, p, i, back))
+        return out
+
+    cands = [cand for c in ok if c.id not in linked for cand in candidates(c, False)]
     if not cands:
         return []
+    parents = {b.parent for b in ok}
     nets: list[tuple[cKDTree, Any] | None] = []
     for g in graphs:
         rr, cc, adj = _pixel_graph(g.skeleton)
@@ -875,11 +901,15 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
         steps = np.linalg.norm(xy[coo.row] - xy[coo.col], axis=1)  # 1 or sqrt(2) px
         nets.append((cKDTree(xy), sparse.csr_matrix((steps, (coo.row, coo.col)), shape=adj.shape)))
     joins = []
-    for gap, c, p, i in cands:
+    backwards: set[int] = set()  # branches whose paths walk back over them
+    tried_back: set[int] = set()
+    while cands:
+        gap, c, p, i, back = cands.pop(0)
         detours, walks = [], []
-        for k, (view, pts2d) in enumerate(zip(views, (c.pair.points_a_px, c.pair.points_b_px), strict=True)):
+        for k, (view, piece) in enumerate(zip(views, (c.pair.points_a_px, c.pair.points_b_px), strict=True)):
             if nets[k] is None:
                 break
+            pts2d = np.asarray(piece, float)[::-1] if back else np.asarray(piece, float)
             kd, net = nets[k]
             q = view.project(p.points_mm[i][None])[0]
             (d0, j0), (d1, j1) = kd.query(pts2d[0]), kd.query(q)
@@ -898,14 +928,47 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
                 path.append(int(pred[path[-1]]))
             path = np.asarray(path[::-1])
             fork = np.diff(net.indptr)[path] >= 3  # skeleton pixels where branches meet
-            walks.append((np.vstack([q, kd.data[path], pts2d[0]]), np.r_[False, fork, False]))
+            walk = np.vstack([q, kd.data[path], pts2d[0]])
+            if OWN_WALK_PX is not None and _own_walk(walk, pts2d) > OWN_WALK_PX:
+                backwards.add(c.id)
+                break
+            walks.append((walk, np.r_[False, fork, False]))
         else:
-            note = (f"{JOINED_NOTE} {gap:.1f} mm to branch {p.id}, where both views' skeletons run "
-                    f"between the two ({detours[0]:.0f} and {detours[1]:.0f} px): ")
+            turned = "its end (it ran towards the other branch) " if back else ""
+            note = (f"{JOINED_NOTE} {gap:.1f} mm {'from ' + turned if back else ''}to branch {p.id}, where "
+                    f"both views' skeletons run between the two ({detours[0]:.0f} and {detours[1]:.0f} px): ")
             joins.append((gap, c.id, p.id, i, note))
             if paths is not None:
                 paths[(c.id, p.id)] = (walks[0], walks[1])
+            if back and flips is not None:
+                flips.add((c.id, p.id))
+        if not cands:  # the branches that walked back over themselves, from their ends
+            for b in ok:
+                if b.id in backwards and b.id not in tried_back and b.id not in parents:
+                    tried_back.add(b.id)
+                    cands.extend(candidates(b, True))
     return joins
+
+
+def _own_walk(walk: np.ndarray, piece: np.ndarray) -> float:
+    """How far (px) a skeleton path to a branch's start runs on that branch's own 2D piece
+    (within :data:`JOIN_PX`), its last :data:`JOIN_PX` aside."""
+    step = np.linalg.norm(np.diff(walk, axis=0), axis=1)
+    left = np.r_[np.cumsum(step[::-1])[::-1], 0.0]  # path length from each sample to the start
+    on = (distance_to_polyline(walk, np.asarray(piece, float)) <= JOIN_PX) & (left > JOIN_PX)
+    return float(np.sum(step[on[:-1] & on[1:]]))
+
+
+def _reverse(branch: BranchResult, views: tuple[CArmView, CArmView] | None) -> None:
+    """``branch`` walked the other way: its points, radii and pair (end landmark first)."""
+    from .matching import _flip
+
+    branch.points_mm = branch.points_mm[::-1].copy()
+    branch.radius_mm = branch.radius_mm[::-1].copy()
+    branch.pair = _flip(branch.pair)
+    if views is not None:
+        branch.reprojection = reprojection_error(branch.points_mm, list(views),
+                                                 [branch.pair.points_a_px, branch.pair.points_b_px])
 
 
 def _departure(parent: BranchResult, views: tuple[CArmView, CArmView],
