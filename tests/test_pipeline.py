@@ -734,6 +734,49 @@ def test_a_branch_that_runs_towards_its_parent_is_joined_from_its_end(monkeypatc
     assert far.max() > 17.0 and far[-1] < 4.5                       # out to 18 mm and back to 4
 
 
+def test_a_branch_turned_round_keeps_its_children_where_they_leave_it():
+    # As above, the child paired from 10 mm back to 4 mm, and a vessel of its own leaving it at
+    # its third sample (0.5 mm from its start, 9.5 mm from F; linked there before the join).
+    # Turned round, the vessel keeps leaving it at that point (not at the branch's third sample
+    # from its new start on F, 9 mm away, onto which its start would be moved).
+    import vesselcad.pipeline as pipeline
+
+    s = np.linspace(0.0, 1.0, 121)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
+    child = s * [0.0, 25.0, 15.0]
+    along = np.linalg.norm(child, axis=1)
+    seen = child[(along >= 4.0) & (along <= 10.0)][::-1]           # 10 mm -> 4 mm
+    side = seen[2] + np.linspace(0.0, 1.0, 41)[:, None] * [12.0, 4.0, -3.0]
+    graphs = _drawn_graphs((parent, 1.5), (child, 1.0), (side, 1.0))
+    results = [_branch(0, parent), _branch(1, seen), _branch(2, side)]
+    pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
+    assert [b.parent for b in results] == [None, 0, 1]
+    assert np.linalg.norm(results[1].points_mm[0]) < 0.5              # turned round, onto F
+    assert np.linalg.norm(results[1].points_mm[-3] - seen[2]) < 1e-9  # where the side vessel leaves
+    np.testing.assert_array_equal(results[2].points_mm, side)         # not moved
+
+
+def test_a_bridged_branch_keeps_its_children_where_they_leave_it():
+    # The bridged child of the test above, with a vessel of its own whose start lies 1.5 mm beside
+    # its 11th sample (linked there, and moved onto it: outside its lumen). The bridge puts 30
+    # samples ahead of the branch's own: the vessel still starts at that sample (the index as
+    # it was would point 15 mm back along the branch, too far to move to).
+    import vesselcad.pipeline as pipeline
+
+    s = np.linspace(0.0, 1.0, 121)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
+    child = s * [0.0, 25.0, 15.0]
+    seen = child[np.linalg.norm(child, axis=1) >= 15.0]
+    side = seen[10] + [1.5, 0.0, 0.0] + np.linspace(0.0, 1.0, 41)[:, None] * [12.0, 0.0, 0.0]
+    graphs = _drawn_graphs((parent, 1.5), (child, 1.0), (side, 1.0))
+    results = [_branch(0, parent), _branch(1, seen), _branch(2, side)]
+    pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
+    assert [b.parent for b in results] == [None, 0, 1]
+    assert "the gap bridged" in results[1].warnings[-1]
+    assert np.linalg.norm(results[2].points_mm[0] - seen[10]) < 0.3
+    assert "start moved 1.5 mm onto branch 1" in results[2].warnings[-1]
+
+
 def test_a_bridge_whose_two_paths_are_not_one_vessel_is_not_built():
     # The same gap, but view B's path runs through a point 12 mm off the child (another vessel,
     # as where a skeleton path turns at a crossing): no 3D curve lies on both paths, the

@@ -98,8 +98,9 @@ JOINED_NOTE = "joined across"
 #: pixels (in either view, its last ``JOIN_PX`` aside) within ``JOIN_PX`` of the branch's own
 #: 2D piece walks back over the branch: the branch runs towards the other one, and joining its
 #: start would fold the centreline back on itself (true labels rca 2104: a 14 mm bridge out
-#: and the branch back along it, 0.05 mm apart). Such a branch without children is joined
-#: the other way round, from its end, where a path from there qualifies; None: not checked.
+#: and the branch back along it, 0.05 mm apart). Such a branch is joined the other way
+#: round, from its end, where a path from there qualifies (its children keep their places
+#: on it); None: not checked.
 OWN_WALK_PX: float | None = 3.0 * JOIN_PX
 #: A 3D branch whose points lie, by their median, farther from the heart's surface fitted by the
 #: matching (``GraphMatch.surface``) than ``OFF_SURFACE_SIGMAS`` times that fit's spread, and at
@@ -655,9 +656,14 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         gap = float(np.linalg.norm(child.points_mm[0] - target))
         if (c, p) in walks and MAX_BRIDGE_MM is not None and gap > max(MAX_JOIN_GAP_MM, par.radius_mm[i]):
             target, paths = _departure(par, views, walks[(c, p)])
+            before = len(child.points_mm)
             off = _bridge(child, target, views, paths)
             if off is None:
                 child.warnings.append(f"{why}the gap bridged along them ({gap:.1f} mm)")
+                added = len(child.points_mm) - before  # its own children leave it where they did
+                for x, (q, j, w) in list(links.items()):
+                    if q == c:
+                        links[x] = (q, j + added, w)
             else:
                 child.parent = None
                 child.warnings.append(f"not {why[:-2]}: no single 3D curve follows both paths (the "
@@ -864,8 +870,8 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
     :data:`SKELETON_DETOUR_PX`: the two pieces are one vessel in both images, not two
     vessels that pass close in 3D (those join in the images, if at all, by a detour
     through other vessels). A path that walks back over the branch's own 2D piece
-    (:data:`OWN_WALK_PX`) is no candidate: the branch runs towards the other one; one
-    without children is then tried from its end, which must qualify the same way.
+    (:data:`OWN_WALK_PX`) is no candidate: the branch runs towards the other one, and
+    is then tried from its end, which must qualify the same way.
     """
     from scipy import sparse
     from scipy.sparse import csgraph
@@ -889,7 +895,6 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
     cands = [cand for c in ok if c.id not in linked for cand in candidates(c, False)]
     if not cands:
         return []
-    parents = {b.parent for b in ok}
     nets: list[tuple[cKDTree, Any] | None] = []
     for g in graphs:
         rr, cc, adj = _pixel_graph(g.skeleton)
@@ -944,7 +949,7 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
                 flips.add((c.id, p.id))
         if not cands:  # the branches that walked back over themselves, from their ends
             for b in ok:
-                if b.id in backwards and b.id not in tried_back and b.id not in parents:
+                if b.id in backwards and b.id not in tried_back:
                     tried_back.add(b.id)
                     cands.extend(candidates(b, True))
     return joins
