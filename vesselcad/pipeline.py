@@ -94,14 +94,17 @@ MAX_BRIDGE_MM: float | None = 20.0
 BRIDGE_MAX_PX = 1.0
 #: How the warning of a branch joined that way begins (the report's overlay marks its start).
 JOINED_NOTE = "joined across"
-#: A skeleton path from the other branch to a branch's start that runs more than this many
-#: pixels (in either view, its last ``JOIN_PX`` aside) within ``JOIN_PX`` of the branch's own
-#: 2D piece walks back over the branch: the branch runs towards the other one, and joining its
+#: Skeleton paths from the other branch to a branch's start that run, in both views, more than
+#: this many pixels (their last ``JOIN_PX`` aside) within ``JOIN_PX`` of the branch's own 2D
+#: piece walk back over the branch: the branch runs towards the other one, and joining its
 #: start would fold the centreline back on itself (true labels rca 2104: a 14 mm bridge out
 #: and the branch back along it, 0.05 mm apart). Such a branch is joined the other way
-#: round, from its end, where a path from there qualifies (its children keep their places
-#: on it); None: not checked.
+#: round, from its end, where paths from there qualify (its children keep their places on
+#: it), else as before; None: not checked.
 OWN_WALK_PX: float | None = 3.0 * JOIN_PX
+#: ... and at least this share of the branch's 2D piece, in both views (a path that runs
+#: over a few millimetres of the branch's start is a hook of its start, not a reversal).
+OWN_WALK_SHARE = 0.5
 #: A 3D branch whose points lie, by their median, farther from the heart's surface fitted by the
 #: matching (``GraphMatch.surface``) than ``OFF_SURFACE_SIGMAS`` times that fit's spread, and at
 #: least ``OFF_SURFACE_MIN_MM``, is left out (``reconstruct(off_surface_sigmas=...)``): a pairing of
@@ -643,7 +646,17 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
         if graphs is not None and SKELETON_DETOUR is not None:
             known = roots is not None and None not in roots
             ostium = {b.id for b in ok if known and b.pair.start == tuple(roots)}
-            accept(_joins_along_skeletons(ok, views, graphs, set(links) | ostium, find, walks, flips))
+            fallback: list[Any] = []
+            accept(_joins_along_skeletons(ok, views, graphs, set(links) | ostium, find, walks, flips,
+                                          fallback))
+            # a branch that walked back over itself and could not be joined from its end either
+            # is joined as before, folded back at its start
+            late = [join for join, _ in fallback if join[1] not in links]
+            for join, both in fallback:
+                if join[1] not in links:
+                    walks[(join[1], join[2])] = both
+                    flips.discard((join[1], join[2]))
+            accept(late)
     if adjust is not None:
         adjust()
     def depth(c: int) -> int:
@@ -851,14 +864,17 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
                            graphs: tuple[CentrelineGraph, CentrelineGraph], linked: set[int],
                            tree_of: Callable[[int], int],
                            paths: dict[tuple[int, int], Any] | None = None,
-                           flips: set[tuple[int, int]] | None = None
+                           flips: set[tuple[int, int]] | None = None,
+                           fallback: list[tuple[tuple[float, int, int, int, str], Any]] | None = None
                            ) -> list[tuple[float, int, int, int, str]]:
     """Candidate links across a stretch the matching left unpaired: (gap mm, child, parent,
     index of the parent's point, note); ``paths``, if given, receives each candidate's two
     skeleton paths (px, from the parent's point to the child's start, each with a flag per
     sample: a skeleton pixel where branches meet) under (child, parent); ``flips``, if
     given, receives (child, parent) for the candidates that join the child from its end
-    (the paths then lead to its end, which becomes its start when the link is accepted).
+    (the paths then lead to its end, which becomes its start when the link is accepted);
+    ``fallback``, if given, receives the candidates refused because their paths walk back
+    over the child, with their paths (to be taken where the child stays unlinked).
 
     For each branch without a parent (not in ``linked``: those linked already, and the
     one starting at the ostium, which stays its tree's root), the nearest 3D point of
@@ -869,9 +885,10 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
     projections and runs between them no longer than :data:`SKELETON_DETOUR` times the straight line plus
     :data:`SKELETON_DETOUR_PX`: the two pieces are one vessel in both images, not two
     vessels that pass close in 3D (those join in the images, if at all, by a detour
-    through other vessels). A path that walks back over the branch's own 2D piece
-    (:data:`OWN_WALK_PX`) is no candidate: the branch runs towards the other one, and
-    is then tried from its end, which must qualify the same way.
+    through other vessels). Where the paths walk back over the branch's own 2D piece in
+    both views (:data:`OWN_WALK_PX`, :data:`OWN_WALK_SHARE`), the branch runs towards the
+    other one: the candidate goes to ``fallback``, and, unless it has another candidate
+    as it runs, the branch is tried from its end, which must qualify the same way.
     """
     from scipy import sparse
     from scipy.sparse import csgraph
@@ -907,10 +924,11 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
         nets.append((cKDTree(xy), sparse.csr_matrix((steps, (coo.row, coo.col)), shape=adj.shape)))
     joins = []
     backwards: set[int] = set()  # branches whose paths walk back over them
+    forward: set[int] = set()  # branches with a candidate as they run
     tried_back: set[int] = set()
     while cands:
         gap, c, p, i, back = cands.pop(0)
-        detours, walks = [], []
+        detours, walks, over = [], [], []
         for k, (view, piece) in enumerate(zip(views, (c.pair.points_a_px, c.pair.points_b_px), strict=True)):
             if nets[k] is None:
                 break
@@ -934,22 +952,30 @@ def _joins_along_skeletons(ok: list[BranchResult], views: tuple[CArmView, CArmVi
             path = np.asarray(path[::-1])
             fork = np.diff(net.indptr)[path] >= 3  # skeleton pixels where branches meet
             walk = np.vstack([q, kd.data[path], pts2d[0]])
-            if OWN_WALK_PX is not None and _own_walk(walk, pts2d) > OWN_WALK_PX:
-                backwards.add(c.id)
-                break
             walks.append((walk, np.r_[False, fork, False]))
+            if OWN_WALK_PX is not None:
+                own = _own_walk(walk, pts2d)
+                over.append(own > OWN_WALK_PX and own >= OWN_WALK_SHARE * _length(pts2d))
         else:
             turned = "its end (it ran towards the other branch) " if back else ""
             note = (f"{JOINED_NOTE} {gap:.1f} mm {'from ' + turned if back else ''}to branch {p.id}, where "
                     f"both views' skeletons run between the two ({detours[0]:.0f} and {detours[1]:.0f} px): ")
-            joins.append((gap, c.id, p.id, i, note))
-            if paths is not None:
-                paths[(c.id, p.id)] = (walks[0], walks[1])
-            if back and flips is not None:
-                flips.add((c.id, p.id))
-        if not cands:  # the branches that walked back over themselves, from their ends
+            join = (gap, c.id, p.id, i, note)
+            if over and all(over):  # walks back over the branch in both views
+                if not back:
+                    backwards.add(c.id)
+                    if fallback is not None:
+                        fallback.append((join, (walks[0], walks[1])))
+            else:
+                joins.append(join)
+                forward.add(c.id)
+                if paths is not None:
+                    paths[(c.id, p.id)] = (walks[0], walks[1])
+                if back and flips is not None:
+                    flips.add((c.id, p.id))
+        if not cands:  # the branches that walked back over themselves (and only so), from their ends
             for b in ok:
-                if b.id in backwards and b.id not in tried_back:
+                if b.id in backwards and b.id not in forward and b.id not in tried_back:
                     tried_back.add(b.id)
                     cands.extend(candidates(b, True))
     return joins
