@@ -626,9 +626,8 @@ def _union_volume(spine: interpolate.BSpline, radius: interpolate.BSpline, bound
     share of it that no earlier piece holds, from :data:`_UNION_SAMPLES` points
     drawn in it (spine parameter by section area, radius by the square root, the
     bend's Jacobian as weight; a fixed seed). A point lies in another piece where
-    its nearest spine sample (every 0.02 mm or a fifth of the smallest radius)
-    is nearer than that sample's radius, on the inner side of the piece's end
-    planes.
+    its nearest spine sample (every 0.02 mm at most) is nearer than that sample's
+    radius, on the inner side of the piece's end planes.
     """
     from scipy.spatial import cKDTree
 
@@ -642,14 +641,14 @@ def _union_volume(spine: interpolate.BSpline, radius: interpolate.BSpline, bound
         c, r = spine(u), np.ravel(radius(u))
         du = d1(u)
         speed = np.linalg.norm(du, axis=1)
-        t = du / speed[:, None]
+        t = du / np.maximum(speed, 1e-12)[:, None]
         area = np.pi * r**2 * speed
         cdf = np.r_[0.0, np.cumsum(0.5 * (area[1:] + area[:-1]) * np.diff(u))]
         vol = float(cdf[-1])
         # points drawn in the piece: parameter by section area, then a point of that disc
         at = np.interp(rng.uniform(0.0, vol, n), cdf, u)
         pc, pt = spine(at), d1(at)
-        sp = np.linalg.norm(pt, axis=1)
+        sp = np.maximum(np.linalg.norm(pt, axis=1), 1e-12)
         pt /= sp[:, None]
         k = d2(at)
         curv = (k - np.sum(k * pt, axis=1)[:, None] * pt) / sp[:, None] ** 2  # curvature vector
