@@ -734,6 +734,28 @@ def test_a_branch_that_runs_towards_its_parent_is_joined_from_its_end(monkeypatc
     assert far.max() > 17.0 and far[-1] < 4.5                       # out to 18 mm and back to 4
 
 
+def test_a_branch_that_cannot_be_joined_from_its_end_is_joined_as_before():
+    # The backwards child of the test above, but its 3D end lies 30 mm off in depth (its last
+    # 2 mm; the images as before): no branch of the other tree lies within reach of its end, so
+    # it is joined at its start after all, bridged and folded, rather than left apart.
+    import vesselcad.pipeline as pipeline
+
+    s = np.linspace(0.0, 1.0, 121)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
+    child = s * [0.0, 25.0, 15.0]
+    along = np.linalg.norm(child, axis=1)
+    seen = child[(along >= 4.0) & (along <= 18.0)][::-1]
+    off = seen.copy()
+    off[-8:] += [0.0, 0.0, 30.0]
+    graphs = _drawn_graphs((parent, 1.5), (child, 1.0))
+    results = [_branch(0, parent), _branch(1, seen, off)]
+    pipeline._link_parents(results, (VIEW_A, VIEW_B), graphs=graphs)
+    b = results[1]
+    assert b.parent == 0 and "the gap bridged" in b.warnings[-1] and "from its end" not in b.warnings[-1]
+    assert np.linalg.norm(b.points_mm[0]) < 1.0                   # bridged from F, as it ran
+    np.testing.assert_array_equal(b.points_mm[-len(off):], off)
+
+
 def test_a_branch_turned_round_keeps_its_children_where_they_leave_it():
     # As above, the child paired from 10 mm back to 4 mm, and a vessel of its own leaving it at
     # its third sample (0.5 mm from its start, 9.5 mm from F; linked there before the join).
