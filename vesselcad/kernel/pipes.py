@@ -43,7 +43,7 @@ from scipy import interpolate
 from ..errors import GeometryError
 from . import solid as _solid
 from .nurbs import _int_array, _real_array, is_valid, knots_and_mults
-from .solid import FUZZY_MM, BranchPipe, _general_fuse, _History, _quick_volume, _subshapes
+from .solid import FUZZY_MM, BranchPipe, _axis_sdf, _general_fuse, _History, _quick_volume, _subshapes
 
 __all__ = ["rotation_minimizing_normals", "tube_stations", "tube_surface", "tube_solid", "branch_pipe",
            "seam_angles", "TUBE_TOL_MM", "SECTION_TOL_MM"]
@@ -682,11 +682,7 @@ def _union_volume(spine: interpolate.BSpline, radius: interpolate.BSpline, bound
 def _in_piece(points: np.ndarray, tree: Any, centres: np.ndarray, radii: np.ndarray,
               tangents: np.ndarray) -> np.ndarray:
     """Which ``points`` lie in a tube piece given by its spine samples (see :func:`_union_volume`)."""
-    d, i = tree.query(points)
-    inside = d < radii[i]
-    axial = np.sum((points - centres[i]) * tangents[i], axis=1)
-    inside &= ~((i == 0) & (axial < 0.0)) & ~((i == len(centres) - 1) & (axial > 0.0))
-    return inside
+    return _axis_sdf(tree, centres, radii, points, tangents[0], tangents[-1]) < 0.0
 
 
 def _pieces(surface: Geom_BSplineSurface, bounds: list[float], branch_id: int,

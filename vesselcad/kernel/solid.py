@@ -216,18 +216,28 @@ class BranchPipe:
             return np.full(len(points), np.inf)
         if self._axis_tree is None:
             self._axis_tree = cKDTree(self.axis)
-        reach = float(self.axis_radius.max()) + 2.0
-        dist, idx = self._axis_tree.query(points, distance_upper_bound=reach)
-        far = ~np.isfinite(dist)
-        idx = np.where(far, 0, idx)
-        sdf = np.where(far, np.inf, dist - self.axis_radius[idx])
-        # flat ends: the plane of the end disc bounds the tube (a dome is the nearest samples' sphere)
-        start_cap = np.einsum("ij,j->i", self.start - points, self.start_tangent)
-        sdf = np.where(idx == 0, np.maximum(sdf, start_cap), sdf)
-        if self.end_shape == "flat":
-            end_cap = np.einsum("ij,j->i", points - self.end, self.end_tangent)
-            sdf = np.where(idx == len(self.axis) - 1, np.maximum(sdf, end_cap), sdf)
-        return sdf
+        return _axis_sdf(self._axis_tree, self.axis, self.axis_radius, points, self.start_tangent,
+                         self.end_tangent if self.end_shape == "flat" else None,
+                         float(self.axis_radius.max()) + 2.0)
+
+
+def _axis_sdf(tree: Any, axis: np.ndarray, radius: np.ndarray, points: np.ndarray,
+              start_tangent: np.ndarray, end_tangent: np.ndarray | None,
+              reach: float = np.inf) -> np.ndarray:
+    """Signed distance (mm, negative inside) of ``points`` to the tube round ``axis`` samples
+    (their k-d ``tree``, their ``radius``), from the nearest sample; the planes of its flat
+    ends bound it (at the end only where ``end_tangent`` is given: a dome is the last
+    sample's sphere); +inf beyond ``reach`` of every sample."""
+    dist, idx = tree.query(points, distance_upper_bound=reach)
+    far = ~np.isfinite(dist)
+    idx = np.where(far, 0, idx)
+    sdf = np.where(far, np.inf, dist - radius[idx])
+    start_cap = np.einsum("ij,j->i", axis[0] - points, start_tangent)
+    sdf = np.where(idx == 0, np.maximum(sdf, start_cap), sdf)
+    if end_tangent is not None:
+        end_cap = np.einsum("ij,j->i", points - axis[-1], end_tangent)
+        sdf = np.where(idx == len(axis) - 1, np.maximum(sdf, end_cap), sdf)
+    return sdf
 
 
 @dataclass(frozen=True)
