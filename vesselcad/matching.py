@@ -75,6 +75,10 @@ COST_REF_PERCENTILE = 10.0
 COST_REF_MIN_PX = 0.1
 #: Shortest open-ended pair (px along each view).
 MIN_OPEN_PX = 16.0
+#: An open-ended pair's trailing stretch of one view aligned with the other view's last sample
+#: alone is cut off when longer than this (px) and than twice the pair's own ratio of lengths
+#: (:func:`_trim_open_tail`; None: kept).
+OPEN_TAIL_PX: float | None = 8.0
 #: A pair's 3D length over its longer 2D length (mm at the isocentre) up to which it is
 #: plausible without penalty: a vessel foreshortened this much in *both* views.
 FORESHORTENING_FREE = 1.2
@@ -698,6 +702,10 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         if min(pa.s[ie], pb.s[je]) < MIN_OPEN_PX:
             continue
         pi, pj = backtrack(D[: ie + 1, : je + 1])
+        pi, pj = _trim_open_tail(pa.s, pb.s, pi, pj)
+        ie, je = int(pi[-1]), int(pj[-1])
+        if min(pa.s[ie], pb.s[je]) < MIN_OPEN_PX:
+            continue
         cost = float(np.mean(E[pi, pj]))
         if cost > tol:
             continue
@@ -710,6 +718,33 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
         out.append(cand)
     return out
+
+
+def _trim_open_tail(sa: np.ndarray, sb: np.ndarray, pi: np.ndarray, pj: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """An open alignment ``(pi, pj)`` (sample indices into paths of arc lengths ``sa``, ``sb``)
+    without its trailing stretch of one path aligned with the other's last sample alone.
+
+    Where a vessel runs along the epipolar lines, the samples of one view's piece that go on
+    past the other's end (a gap in that view's mask) all lie near the epipolar line of the
+    other's last sample: the alignment takes them in at a low error, pairing them with that
+    one point. They have no partner there; cut off (beyond :data:`OPEN_TAIL_PX`, or twice
+    the alignment's own ratio of lengths before that stretch), they stay free for a pair of
+    their own. ``OPEN_TAIL_PX = None``: not cut.
+    """
+    if OPEN_TAIL_PX is None or len(pi) < 3:
+        return pi, pj
+    for own, other, s_own, s_other in ((pi, pj, sa, sb), (pj, pi, sb, sa)):
+        stuck = np.flatnonzero(other != other[-1])
+        k = int(stuck[-1]) + 1 if len(stuck) else 0  # first entry aligned with the other's last sample
+        if k == 0 or len(own) - k < 2:
+            continue
+        tail = float(s_own[own[-1]] - s_own[own[k]])
+        before = max(float(s_other[other[k]] - s_other[other[0]]), STEP_PX)
+        ratio = float(s_own[own[k]] - s_own[own[0]]) / before
+        if tail > max(OPEN_TAIL_PX, 2.0 * STEP_PX * ratio):
+            return pi[: k + 1], pj[: k + 1]
+    return pi, pj
 
 
 def _foreshortening_factor(points_mm: np.ndarray, length_a_px: float, length_b_px: float,
