@@ -25,7 +25,7 @@ See docs/centreline2d.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import networkx as nx
@@ -76,8 +76,8 @@ COST_REF_MIN_PX = 0.1
 #: Shortest open-ended pair (px along each view).
 MIN_OPEN_PX = 16.0
 #: An open-ended pair's trailing stretch of one view aligned with the other view's last sample
-#: alone is cut off when longer than this (px) and than twice the pair's own ratio of lengths
-#: (:func:`_trim_open_tail`; None: kept).
+#: alone is left out of its pieces (after the choice of pairs) when longer than this (px) and
+#: than twice the pair's own ratio of lengths (:func:`_trim_open_tail`; None: kept).
 OPEN_TAIL_PX: float | None = 8.0
 #: A pair's 3D length over its longer 2D length (mm at the isocentre) up to which it is
 #: plausible without penalty: a vessel foreshortened this much in *both* views.
@@ -576,6 +576,8 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     depth_a = _depths(ga)
     pairs: list[BranchPair] = []
     for c in accepted:
+        if c.cut is not None:  # an open pair's pieces end where both views still run together
+            c = replace(c, path=c.cut, end=(int(c.cut[0][-1]), int(c.cut[1][-1])))
         pieces = _pieces(view_a, view_b, ga, gb, c, mm_a, mm_b)
         far = c.pa.nodes[len(c.edges_a)]
         if depth_a.get(c.pa.nodes[0], 0) > depth_a.get(far, 0):
@@ -645,6 +647,7 @@ class _Cand:
     edges_a: list[int]  # branches it uses
     edges_b: list[int]
     points_mm: np.ndarray | None = None  # triangulated points along the alignment
+    cut: tuple[np.ndarray, np.ndarray] | None = None  # the alignment its pieces keep, if shorter
 
     @property
     def length(self) -> float:
@@ -702,10 +705,6 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         if min(pa.s[ie], pb.s[je]) < MIN_OPEN_PX:
             continue
         pi, pj = backtrack(D[: ie + 1, : je + 1])
-        pi, pj = _trim_open_tail(pa.s, pb.s, pi, pj)
-        ie, je = int(pi[-1]), int(pj[-1])
-        if min(pa.s[ie], pb.s[je]) < MIN_OPEN_PX:
-            continue
         cost = float(np.mean(E[pi, pj]))
         if cost > tol:
             continue
@@ -716,6 +715,9 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])], [], [],
                      list(pa.edges), list(pb.edges), X[pi, pj])
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
+        ti, tj = _trim_open_tail(pa.s, pb.s, pi, pj)
+        if len(ti) < len(pi) and min(pa.s[ti[-1]], pb.s[tj[-1]]) >= MIN_OPEN_PX:
+            cand.cut = (ti, tj)
         out.append(cand)
     return out
 
