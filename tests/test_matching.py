@@ -263,35 +263,6 @@ def _phantom_match(seed, kind, **options):
     return case, i, m, on, off
 
 
-def test_an_open_pair_does_not_run_on_along_the_other_views_last_sample(monkeypatch):
-    # View A's piece: 20 samples 2 px apart; view B's: 10. The alignment pairs them one to one
-    # for 18 px, then pairs A's last 10 samples (20 px) with B's last sample alone, as a vessel
-    # that runs along the epipolar lines past a gap in view B's mask does: those samples have
-    # no partner and are cut off, at the first of them (A 18 px, B 18 px).
-    import vesselcad.matching as M
-
-    sa, sb = np.arange(20) * 2.0, np.arange(10) * 2.0
-    pi = np.arange(20)
-    pj = np.minimum(np.arange(20), 9)
-    ti, tj = M._trim_open_tail(sa, sb, pi, pj)
-    assert (ti[-1], tj[-1]) == (9, 9) and len(ti) == 10
-    # the same the other way round: B runs on past A's end
-    ti2, tj2 = M._trim_open_tail(sb, sa, pj, pi)
-    assert (ti2[-1], tj2[-1]) == (9, 9)
-    # A vessel foreshortened in view B: three A samples to each B sample all along, and the last
-    # B sample takes three as well (4 px of A past the first of them): nothing is cut.
-    sa3, sb3 = np.arange(33) * 2.0, np.arange(11) * 2.0
-    pi3 = np.arange(33)
-    pj3 = np.arange(33) // 3
-    ti3, tj3 = M._trim_open_tail(sa3, sb3, pi3, pj3)
-    assert len(ti3) == 33 and (ti3[-1], tj3[-1]) == (32, 10)
-    # A short overrun (6 px, under OPEN_TAIL_PX) stays; with OPEN_TAIL_PX = None nothing is cut.
-    short = np.minimum(np.arange(13), 9)
-    assert len(M._trim_open_tail(sa, sb, np.arange(13), short)[0]) == 13
-    monkeypatch.setattr(M, "OPEN_TAIL_PX", None)
-    assert len(M._trim_open_tail(sa, sb, pi, pj)[0]) == 20
-
-
 def test_pairings_that_zigzag_in_depth_are_not_taken():
     # Coronary sinus phantoms seen at 0 and 30 degrees: many vessels share epipolar bands, and a
     # wrong pairing reprojects as well as the right one. Without the foreshortening factor 46 %,

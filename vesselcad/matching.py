@@ -25,7 +25,7 @@ See docs/centreline2d.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import networkx as nx
@@ -75,10 +75,6 @@ COST_REF_PERCENTILE = 10.0
 COST_REF_MIN_PX = 0.1
 #: Shortest open-ended pair (px along each view).
 MIN_OPEN_PX = 16.0
-#: An open-ended pair's trailing stretch of one view aligned with the other view's last sample
-#: alone is left out of its pieces (after the choice of pairs) when longer than this (px) and
-#: than twice the pair's own ratio of lengths (:func:`_trim_open_tail`; None: kept).
-OPEN_TAIL_PX: float | None = 8.0
 #: A pair's 3D length over its longer 2D length (mm at the isocentre) up to which it is
 #: plausible without penalty: a vessel foreshortened this much in *both* views.
 FORESHORTENING_FREE = 1.2
@@ -576,8 +572,6 @@ def match_graphs(view_a: CArmView, graph_a: CentrelineGraph, view_b: CArmView,
     depth_a = _depths(ga)
     pairs: list[BranchPair] = []
     for c in accepted:
-        if c.cut is not None:  # an open pair's pieces end where both views still run together
-            c = replace(c, path=c.cut, end=(int(c.cut[0][-1]), int(c.cut[1][-1])))
         pieces = _pieces(view_a, view_b, ga, gb, c, mm_a, mm_b)
         far = c.pa.nodes[len(c.edges_a)]
         if depth_a.get(c.pa.nodes[0], 0) > depth_a.get(far, 0):
@@ -647,7 +641,6 @@ class _Cand:
     edges_a: list[int]  # branches it uses
     edges_b: list[int]
     points_mm: np.ndarray | None = None  # triangulated points along the alignment
-    cut: tuple[np.ndarray, np.ndarray] | None = None  # the alignment its pieces keep, if shorter
 
     @property
     def length(self) -> float:
@@ -715,38 +708,8 @@ def _open_candidates(va: CArmView, vb: CArmView, paths_a: list[_Path], paths_b: 
         cand = _Cand(gain, cost, pa, pb, (ie, je), (pi, pj), [(pa.nodes[0], pb.nodes[0])], [], [],
                      list(pa.edges), list(pb.edges), X[pi, pj])
         cand.gain *= _radius_agreement(cand, mm_a, mm_b)
-        ti, tj = _trim_open_tail(pa.s, pb.s, pi, pj)
-        if len(ti) < len(pi) and min(pa.s[ti[-1]], pb.s[tj[-1]]) >= MIN_OPEN_PX:
-            cand.cut = (ti, tj)
         out.append(cand)
     return out
-
-
-def _trim_open_tail(sa: np.ndarray, sb: np.ndarray, pi: np.ndarray, pj: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """An open alignment ``(pi, pj)`` (sample indices into paths of arc lengths ``sa``, ``sb``)
-    without its trailing stretch of one path aligned with the other's last sample alone.
-
-    Where a vessel runs along the epipolar lines, the samples of one view's piece that go on
-    past the other's end (a gap in that view's mask) all lie near the epipolar line of the
-    other's last sample: the alignment takes them in at a low error, pairing them with that
-    one point. They have no partner there; cut off (beyond :data:`OPEN_TAIL_PX`, or twice
-    the alignment's own ratio of lengths before that stretch), they stay free for a pair of
-    their own. ``OPEN_TAIL_PX = None``: not cut.
-    """
-    if OPEN_TAIL_PX is None or len(pi) < 3:
-        return pi, pj
-    for own, other, s_own, s_other in ((pi, pj, sa, sb), (pj, pi, sb, sa)):
-        stuck = np.flatnonzero(other != other[-1])
-        k = int(stuck[-1]) + 1 if len(stuck) else 0  # first entry aligned with the other's last sample
-        if k == 0 or len(own) - k < 2:
-            continue
-        tail = float(s_own[own[-1]] - s_own[own[k]])
-        before = max(float(s_other[other[k]] - s_other[other[0]]), STEP_PX)
-        ratio = float(s_own[own[k]] - s_own[own[0]]) / before
-        if tail > max(OPEN_TAIL_PX, 2.0 * STEP_PX * ratio):
-            return pi[: k + 1], pj[: k + 1]
-    return pi, pj
 
 
 def _foreshortening_factor(points_mm: np.ndarray, length_a_px: float, length_b_px: float,
