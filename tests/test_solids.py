@@ -1640,10 +1640,11 @@ def test_a_forked_copy_starts_its_own_helper_and_leaves_the_parents_alone():
     assert shape_volume(again.Shape()) == pytest.approx(expected, rel=1e-12)
 
 
-def test_a_slow_union_adding_back_a_lost_branch_gives_way_to_the_branch_by_branch_union(monkeypatch):
+def test_a_slow_union_adding_back_a_lost_branch_gives_way_to_a_union_without_it(monkeypatch):
     # tests/data/README.md: the general fuse of this tree loses three branches, and adding the
     # first back took OCCT 110 s; with a 5 s limit on single-branch unions the tree is fused
-    # branch by branch instead (each of those unions takes under a second), every branch kept.
+    # again without the three (and what hangs from them), which are then added one by one
+    # (each of those unions takes under a second), every branch kept.
     import vesselcad.kernel.solid as ks
     import vesselcad.tree as vt
 
@@ -1655,9 +1656,10 @@ def test_a_slow_union_adding_back_a_lost_branch_gives_way_to_the_branch_by_branc
     monkeypatch.setattr(vt, "END_INSIDE_SHARE", None)  # and children kept inside ends
     tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "fuse_slow_lca_2006.json")
     solid = tree.solid()
-    notes = [w for w in solid.warnings if "fused the branches one by one in tree order" in w]
-    assert len(notes) == 1 and "the general fuse lost branches" in notes[0]
+    notes = [w for w in solid.warnings if "fused the tree again without them" in w]
+    assert len(notes) == 1 and "the general fuse lost branches [5, 11, 16]" in notes[0]
     assert "adding them back did not finish within 5 s" in notes[0]
+    assert "then added those one by one in tree order" in notes[0]
     check = solid.check()
     assert check["valid"] and check["watertight"] and check["solids"] == 1
     assert not solid.failed and len(solid.branch_ids) == len(solid.pipes)
@@ -1740,11 +1742,84 @@ def test_a_lost_branch_whose_adding_back_overruns_is_reported_as_such(monkeypatc
     monkeypatch.setattr(ks, "_general_fuse", lossy)
     monkeypatch.setattr(ks, "STEP_FUSE_TIMEOUT_S", 7.0)
     solid = _y_tree().solid()
-    assert calls == [3, 2, 2, 2]  # general fuse, adding back, then the two children in tree order
+    assert calls == [3, 2, 2, 2]  # general fuse, adding back, the tree without it, then it
     assert ("the general fuse lost branches [2] and adding them back did not finish within 7 s; fused "
-            "the branches one by one in tree order") in solid.warnings
+            "the tree again without them and the branches after them ([2]), then added those one by "
+            "one in tree order") in solid.warnings
     assert not solid.failed and _roles(solid) == (1, 3)
     assert solid.check()["watertight"]
+
+
+def _y_tree_with_twig():
+    """The Y of :func:`_y_tree` with a r = 0.8 twig (id 3) from the middle of its right branch."""
+    mid = np.array([0.0, 0.0, 20.0]) + 12.5 * RIGHT
+    out = np.array([-np.cos(ANGLE), 0.0, np.sin(ANGLE)])  # normal to the right branch, in its plane
+    return _tree([
+        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+         "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "name": "left", "points": _line([0, 0, 20], LEFT, 25).tolist(),
+         "radius": [1.4] * 30},
+        {"id": 2, "parent": 0, "name": "right", "points": _line([0, 0, 20], RIGHT, 25).tolist(),
+         "radius": [1.4] * 30},
+        {"id": 3, "parent": 2, "name": "twig", "points": _line(mid, out + RIGHT, 12).tolist(),
+         "radius": [0.8] * 30},
+    ])
+
+
+def _lossy_fuse(monkeypatch, lose_again):
+    """``_general_fuse`` whose first general fuse of the whole tree loses branch 2 (the third
+    shape), whose adding back runs out of time, and whose second general fuse (of the tree
+    without 2 and its twig) fails too if ``lose_again``. Returns the shape counts of the calls."""
+    import vesselcad.kernel.solid as ks
+
+    real = ks._general_fuse
+    calls = []
+
+    def lossy(shapes, fuzzy, parallel=True, timeout_s=None):
+        calls.append(len(shapes))
+        if len(calls) == 1:
+            return real([s for i, s in enumerate(shapes) if i != 2], fuzzy, parallel, timeout_s)
+        if len(calls) == 2:
+            raise TimeoutError("overran")
+        if len(calls) == 3 and lose_again:
+            return None
+        return real(shapes, fuzzy, parallel, timeout_s)
+
+    monkeypatch.setattr(ks, "_general_fuse", lossy)
+    return calls
+
+
+def test_a_tree_is_fused_again_without_the_subtree_the_general_fuse_lost(monkeypatch):
+    # The lost branch 2 and its twig 3 go into a second general fuse's union of the rest one by
+    # one; the solid is the same as the one general fuse that loses nothing gives.
+    whole = _y_tree_with_twig().solid()
+    assert not whole.union_warnings and not whole.failed
+    calls = _lossy_fuse(monkeypatch, lose_again=False)
+    solid = _y_tree_with_twig().solid()
+    # general fuse (4 pipes), adding back 2, the tree without 2 and 3 (0 and 1), 2, then 3
+    assert calls == [4, 2, 2, 2, 2]
+    assert len(solid.union_warnings) == 1
+    assert solid.union_warnings[0].startswith("the general fuse lost branches [2] and adding them back "
+                                              "did not finish")
+    assert "fused the tree again without them and the branches after them ([2, 3])" in solid.union_warnings[0]
+    assert not solid.failed and sorted(solid.branch_ids) == [0, 1, 2, 3]
+    check = solid.check()
+    assert check["valid"] and check["watertight"] and check["solids"] == 1
+    assert solid.volume == pytest.approx(whole.volume, rel=1e-6)
+    assert _roles(solid) == _roles(whole) == (1, 4)  # outlets: 0's, 1's, 2's and 3's ends
+
+
+def test_where_the_tree_without_the_lost_subtree_fails_too_every_branch_is_fused_in_turn(monkeypatch):
+    whole = _y_tree_with_twig().solid()
+    calls = _lossy_fuse(monkeypatch, lose_again=True)
+    solid = _y_tree_with_twig().solid()
+    # general fuse, adding back 2, the tree without 2 and 3 (fails), then 1, 2 and 3 onto the root
+    assert calls == [4, 2, 2, 2, 2, 2]
+    assert solid.union_warnings == ["the general fuse lost branches [2] and adding them back did not finish "
+                                    "within 20 s; fused the branches one by one in tree order"]
+    assert not solid.failed and sorted(solid.branch_ids) == [0, 1, 2, 3]
+    assert solid.check()["watertight"]
+    assert solid.volume == pytest.approx(whole.volume, rel=1e-6)
 
 
 def test_inside_an_application_no_helper_is_started(monkeypatch):
