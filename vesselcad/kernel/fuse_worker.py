@@ -132,6 +132,7 @@ class FuseWorker:
         self._ready = False
         self._dir = tempfile.mkdtemp(prefix="vesselcad-fuse-")
         self._lock = threading.Lock()
+        self._pump: threading.Thread | None = None  # the thread reading the helper's output
         atexit.register(self.close)
 
     def close(self) -> None:
@@ -160,7 +161,8 @@ class FuseWorker:
                 lines.put(line)
             lines.put(None)
 
-        threading.Thread(target=pump, daemon=True).start()
+        self._pump = threading.Thread(target=pump, daemon=True)
+        self._pump.start()
         return self._proc
 
     def start(self) -> None:
@@ -175,9 +177,20 @@ class FuseWorker:
     def stop(self) -> None:
         """Kill the helper (the next job starts a new one)."""
         proc, self._proc = self._proc, None
-        if proc is not None and proc.poll() is None and os.getpid() == self._pid:
+        if proc is None or os.getpid() != self._pid:
+            return
+        if proc.poll() is None:
             proc.kill()
             proc.wait()
+        # its pipes closed too (the reader thread ends at the killed helper's end of output)
+        with contextlib.suppress(OSError):
+            if proc.stdin is not None:
+                proc.stdin.close()
+        pump, self._pump = self._pump, None
+        if pump is not None:
+            pump.join(timeout=1.0)
+            if not pump.is_alive() and proc.stdout is not None:
+                proc.stdout.close()
 
     def _wait_ready(self) -> None:
         # the time limit of a job starts once the helper has imported OCCT
