@@ -854,6 +854,39 @@ def test_edges_shorter_than_the_deflection_in_four_triangles_collapse():
         assert BRepExtrema_DistShapeShape(vertex, shell).Value() < 0.01
 
 
+def test_a_face_folded_over_itself_round_a_pole_is_cut_out_and_filled():
+    # tests/data/README.md: OCCT's triangulation of one hemispherical end cap of this tree folds
+    # over itself next to the sphere's pole (two edges, 0.12 and 0.32 mm, in four triangles of
+    # that face each) at every deflection, healed or not. The fold is cut out and its hole
+    # triangulated again: closed, every edge in two triangles, one consistently wound body that
+    # holds the solid, and the new triangles on the cap's sphere within 0.06 mm (OCCT's own
+    # triangles round that pole stray up to 0.25 mm from it).
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from scipy.spatial import cKDTree
+
+    import vesselcad.kernel.solid as S
+
+    solid, mesh = _data_tree_meshed("mesh_fold_cap_lca_2012.json", "error")  # nothing left to say
+    assert S._mesh_defects(mesh.vertices, mesh.faces) == (0, 0)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert len(mesh.split(only_watertight=False)) == 1
+    _assert_mesh_holds(mesh, solid)
+    fold = np.array([-4.932, -39.545, 15.455])  # where the folded edges were
+    centres = mesh.triangles_center
+    near = np.linalg.norm(centres - fold, axis=1) < 0.5
+    assert set(mesh.face_attributes["branch"][near]) == {3}
+    # the triangles there that are not OCCT's triangulation of the cap (of the copy meshed)
+    _shape, faces = solid._healed if solid._healed is not None else (solid.shape, solid.faces)
+    cap = next(f for f, tag in faces if tag.branch_id == 3 and tag.role == "cap")
+    nodes, tris, _ = S._face_triangulation(cap)
+    occt, _ = cKDTree(nodes[tris].mean(axis=1)).query(centres[near])
+    new = centres[near][occt > 1e-6]
+    assert 5 <= len(new) <= 40
+    sphere = BRepAdaptor_Surface(cap).Sphere()
+    centre, radius = np.array(sphere.Location().Coord()), sphere.Radius()
+    assert np.abs(np.linalg.norm(new - centre, axis=1) - radius).max() < 0.06
+
+
 def test_a_picture_mesh_is_one_unchecked_triangulation(y_solid, monkeypatch):
     import warnings
 

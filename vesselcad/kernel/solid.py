@@ -84,6 +84,10 @@ MESH_MIN_RADIUS_MM = 0.3
 #: Holes of a triangulation whose rim is at most this many times the linear deflection long
 #: are closed by a fan of triangles instead of meshing the solid again finer.
 SMALL_HOLE_DEFLECTIONS = 10.0
+#: A fold of one face's triangulation (edges in four triangles, the face's triangles lying
+#: over each other: a hemispherical end cap meshed round its pole) is cut out and the hole
+#: triangulated again where the triangles cut out span at most this (mm; None: never).
+FOLD_REFILL_MM: float | None = 1.0
 #: A triangulation whose enclosed volume falls short of the solid's by more than inscribed facets
 #: can (``theta**2 / 4`` of facets turning by theta, the larger of the angular deflection's and
 #: the linear deflection's on the thinnest vessel) plus this share is redone once through a
@@ -811,6 +815,17 @@ class VesselSolid:
                 if mended[0] == 0 and mended[1] < defects[1]:
                     self._triangles, defects = (v, t, b, r), mended
                     ratio = self._volume_ratio()
+        if closed and defects[1] and not defects[0] and FOLD_REFILL_MM is not None:
+            # what is left: a face's triangles folded over each other (edges in four triangles of
+            # one face, up to a few tenths of a millimetre: the hemispherical end of a branch with a
+            # child's opening near its pole, end-to-end lca 2012 with the model's labels)
+            v, t, b, r = self._triangles
+            t, b, r = _refill_folds(v, t, b, r, FOLD_REFILL_MM)
+            if len(t) != len(self._triangles[1]):
+                mended = _mesh_defects(v, t)
+                if mended[0] == 0 and mended[1] < defects[1]:
+                    self._triangles, defects = (v, t, b, r), mended
+                    ratio = self._volume_ratio()
         if defects[0]:
             warnings.warn(f"OCCT's triangulation of the solid has holes at deflections {0.6 * key[0]:.3g}-"
                           f"{key[0]:.3g} mm: the STL/GLB/trimesh will not be watertight (the B-rep is; "
@@ -1148,6 +1163,98 @@ def _fill_small_holes(verts: np.ndarray, tris: np.ndarray, branch: np.ndarray, r
     if not new_t:
         return tris, branch, role
     return (np.vstack([tris, *new_t]), np.concatenate([branch, *new_b]), np.concatenate([role, *new_r]))
+
+
+def _refill_folds(verts: np.ndarray, tris: np.ndarray, branch: np.ndarray, role: np.ndarray,
+                  max_extent: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cut out the folds of a closed triangulation and triangulate the holes again.
+
+    A fold is a connected group of triangles that touch a node of an edge used by more
+    than two triangles (with any triangle whose corners are all corners of those). A
+    group is replaced only if its triangles all come from one face tag (branch and
+    role: one face's triangulation folded over itself, not two walls that touch), span
+    at most ``max_extent`` (mm) along each axis, and have one simple loop of open
+    edges; the loop is projected onto its best-fitting plane and ear-clipped, the new
+    triangles oriented as the group's rim and tagged as the group was. Returns the
+    triangles, branch ids and role codes (as given where nothing was replaced).
+    """
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    ids, d, _owner, inv, counts = _edge_use(verts, tris)
+    bad = counts[inv] > 2
+    if not bad.any():
+        return tris, branch, role
+    n = int(ids.max()) + 1
+    t_ids = ids[tris]
+    core = np.zeros(n, bool)
+    core[d[bad].ravel()] = True
+    touched = core[t_ids].any(axis=1)
+    near = np.zeros(n, bool)
+    near[t_ids[touched].ravel()] = True
+    # with the triangles whose corners all lie on those (an island the others surround)
+    touched = np.flatnonzero(touched | near[t_ids].all(axis=1))
+    # groups: triangles joined through shared nodes
+    rows = np.repeat(np.arange(len(touched)), 3)
+    inc = sparse.coo_matrix((np.ones(len(rows)), (rows, t_ids[touched].ravel())),
+                            shape=(len(touched), n)).tocsr()
+    k, comp = csgraph.connected_components(inc @ inc.T, directed=False)
+    rep = np.empty(n, np.int64)
+    rep[ids] = np.arange(len(verts))  # a node for each merged id
+    drop = np.zeros(len(tris), bool)
+    new_t, new_b, new_r = [], [], []
+    for g in range(k):  # few (one or two folds where there are any)
+        group = touched[comp == g]
+        if len({(int(x), int(y)) for x, y in zip(branch[group], role[group], strict=True)}) != 1:
+            continue
+        if np.ptp(verts[tris[group].ravel()], axis=0).max() > max_extent:
+            continue
+        # the group's open rim: its directed edges whose reverse it does not hold
+        e = np.concatenate([t_ids[group][:, [0, 1]], t_ids[group][:, [1, 2]], t_ids[group][:, [2, 0]]])
+        e = e[e[:, 0] != e[:, 1]]
+        fwd = e[:, 0] * np.int64(n) + e[:, 1]
+        back = e[:, 1] * np.int64(n) + e[:, 0]
+        net = {}
+        for f_, b_ in zip(fwd.tolist(), back.tolist(), strict=True):
+            net[f_] = net.get(f_, 0) + 1
+            net[b_] = net.get(b_, 0) - 1
+        rim = [(key // n, key % n) for key, c in net.items() if c > 0]
+        if any(c > 1 for c in net.values()):
+            continue
+        nxt: dict[int, int] = {}
+        for a, b_ in rim:
+            if a in nxt:
+                nxt = {}
+                break
+            nxt[a] = b_
+        if len(nxt) < 3:
+            continue
+        loop = [next(iter(nxt))]
+        while (b_ := nxt.get(loop[-1])) is not None and b_ != loop[0] and len(loop) <= len(nxt):
+            loop.append(b_)
+        if b_ != loop[0] or len(loop) != len(nxt):
+            continue  # not one simple loop
+        p = verts[rep[loop]]
+        centre = p.mean(axis=0)
+        axes = np.linalg.svd(p - centre)[2][:2]
+        fill = _ear_clip((p - centre) @ axes.T)
+        if fill is None:
+            continue
+        fill = np.asarray(loop)[fill]
+        # the rim runs a -> b in the group's triangles, which the fill replaces: the fill runs a -> b too
+        on_rim = {(int(a), int(b_)) for a, b_ in zip(loop, loop[1:] + loop[:1], strict=True)}
+        edges = [(int(x[i]), int(x[(i + 1) % 3])) for x in fill for i in range(3)]
+        if sum(e_ in on_rim for e_ in edges) < sum(e_[::-1] in on_rim for e_ in edges):
+            fill = fill[:, ::-1]
+        drop[group] = True
+        new_t.append(rep[fill])
+        new_b.append(np.full(len(fill), branch[group[0]]))
+        new_r.append(np.full(len(fill), role[group[0]]))
+    if not new_t:
+        return tris, branch, role
+    keep = ~drop
+    return (np.vstack([tris[keep], *new_t]), np.concatenate([branch[keep], *new_b]),
+            np.concatenate([role[keep], *new_r]))
 
 
 def _unpaired_triangles(tris: np.ndarray) -> np.ndarray:
