@@ -789,7 +789,7 @@ class VesselTree:
         at child starts, and moves a child's start onto its parent's centreline
         when it lies off it. Returns dicts ``{'id', 'name', 'parent', 'spine',
         'radius', 'cuts', 'end', 'warnings', 'stubs', 'r_parent', 'neck_mm', 'radius_unnecked',
-        'not_inside'}``;
+        'not_inside'}`` and, for a domed end, ``'dome_openings'`` (``kernel.pipes.dome_openings``);
         ``cuts`` are the spine parameters (mm)
         where a pipe that would overlap itself is cut into pieces (empty for
         almost every branch); ``end`` is ``'dome'`` for a vessel whose children
@@ -858,6 +858,14 @@ class VesselTree:
             for spec in specs:
                 if spec["parent"] is None:
                     _extend_inlet(spec, [c for c in specs if c["parent"] == spec["id"]])
+        from .kernel.pipes import dome_openings
+
+        for spec in specs:
+            if spec["end"] == "dome":  # where the children leave through it (its sphere's pole kept clear)
+                sp, law = spec["spine"], spec["radius"]
+                b = float(sp.t[-sp.k - 1])
+                kids = [(c["spine"], c["radius"]) for c in specs if c["parent"] == spec["id"]]
+                spec["dome_openings"] = dome_openings(sp(b), float(np.ravel(law(b))[0]), kids)
         return specs
 
     def solid(self, tol_mm: float = TOL_MM, merge: bool = True,
@@ -934,7 +942,8 @@ class VesselTree:
             try:
                 pipes.append(branch_pipe(s["id"], s["name"], s["parent"], s["spine"], s["radius"],
                                          station_step_mm, s.get("cuts", ()), s.get("end", "flat"),
-                                         s.get("seam_deg", 0.0), s.get("neck_mm", 0.0)))
+                                         s.get("seam_deg", 0.0), s.get("neck_mm", 0.0),
+                                         s.get("dome_openings")))
             except Exception as exc:  # one bad branch never loses the rest
                 failed[s["id"]] = f"pipe could not be built: {exc}"
                 if s.get("cuts"):  # its start, up to where it first comes back near itself, is kept
@@ -976,7 +985,8 @@ class VesselTree:
                         "union with the wider start failed or did not finish")
             try:
                 q = branch_pipe(s["id"], s["name"], s["parent"], s["spine"], law, station_step_mm,
-                                s.get("cuts", ()), s.get("end", "flat"), s.get("seam_deg", 0.0), neck)
+                                s.get("cuts", ()), s.get("end", "flat"), s.get("seam_deg", 0.0), neck,
+                                s.get("dome_openings"))
             except Exception:  # noqa: BLE001 - no second pipe: the branch is left out as it was
                 return None
             narrowed[s["id"]] = (q, law, neck, said)

@@ -29,10 +29,17 @@ from typing import Any
 
 import numpy as np
 from OCP.BRep import BRep_Builder, BRep_Tool
-from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_MakeWire, BRepBuilderAPI_Sewing
-from OCP.Geom import Geom_BSplineSurface
-from OCP.gp import gp_Ax3, gp_Dir, gp_Pnt, gp_Sphere
-from OCP.ShapeFix import ShapeFix_Solid
+from OCP.BRepBuilderAPI import (
+    BRepBuilderAPI_MakeEdge,
+    BRepBuilderAPI_MakeFace,
+    BRepBuilderAPI_MakeVertex,
+    BRepBuilderAPI_MakeWire,
+    BRepBuilderAPI_Sewing,
+)
+from OCP.BRepExtrema import BRepExtrema_DistShapeShape
+from OCP.Geom import Geom_BSplineSurface, Geom_SphericalSurface
+from OCP.gp import gp_Ax2, gp_Ax3, gp_Circ, gp_Dir, gp_Pnt, gp_Sphere
+from OCP.ShapeFix import ShapeFix_Face, ShapeFix_Solid
 from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array2OfReal
 from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_SHELL, TopAbs_SOLID
@@ -248,10 +255,12 @@ def _seam_candidates(spec: dict[str, Any], n_angles: int) -> dict[str, Any]:
     pts = centre[:, None, :] + r[:, None, None] * dirs
     u = grid
     if spec.get("end") == "dome":  # the dome's seam runs on from the wall's to its pole
-        psi = np.linspace(0.0, 0.5 * np.pi, 5)[1:, None, None]
-        pts = np.concatenate([pts, centre[-1] + r[-1] * (np.cos(psi) * dirs[-1][None]
-                                                          + np.sin(psi) * tan[-1])], axis=0)
-        u = np.r_[grid, np.full(len(psi), grid[-1])]
+        poles = np.array([dome_pole(tan[-1], d, spec.get("dome_openings")) for d in dirs[-1]])  # (K, 3)
+        omega = np.arccos(np.clip(np.sum(dirs[-1] * poles, axis=1), -1.0, 1.0))[None, :, None]  # (1, K, 1)
+        f = np.linspace(0.0, 1.0, 5)[1:, None, None]  # along each great circle to the pole
+        arc = (np.sin((1.0 - f) * omega) * dirs[-1][None] + np.sin(f * omega) * poles[None]) / np.sin(omega)
+        pts = np.concatenate([pts, centre[-1] + r[-1] * arc], axis=0)
+        u = np.r_[grid, np.full(len(f), grid[-1])]
     reach = float(r.max())
     cuts = np.sort(np.asarray(spec.get("cuts", ()), dtype=float))
     piece = np.searchsorted(cuts, u)  # which piece of a pipe cut into pieces each sample is on
@@ -408,8 +417,97 @@ def tube_surface(spine: interpolate.BSpline, radius: interpolate.BSpline | np.nd
                                _int_array(vm), 2, 3)
 
 
+#: Largest tilt (degrees) of an end dome's pole from its tip: the pole stays well inside the rim.
+DOME_MAX_TILT_DEG = 60.0
+#: Tilt (degrees) of the pole of the end dome of a vessel with children from its tip (None: at
+#: the tip, as before 2026-12-07).
+DOME_TILT_DEG: float | None = 45.0
+
+
+def dome_openings(centre: np.ndarray, radius: float,
+                  children: list[tuple[interpolate.BSpline, interpolate.BSpline]]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Where the children leave through a vessel's end dome, roughly.
+
+    Each child's opening is taken as the circle round the direction (from
+    ``centre``) in which its axis leaves the sphere of ``radius``, of angular
+    radius arcsin(r / ``radius``), r the child's radius there.
+
+    Parameters
+    ----------
+    centre : (3,) array
+        The dome's centre (the parent's end point).
+    radius : float
+        The dome's radius (mm).
+    children : list of (spine, radius law)
+        The vessels that start inside the parent (arc-length parameter).
+
+    Returns
+    -------
+    directions : (n, 3) array
+        Unit directions of the openings' centres (children that never leave the
+        sphere, or start outside it, are left out).
+    angles : (n,) array
+        Their angular radii (radians).
+    """
+    c = np.asarray(centre, float)
+    exits, rho = [], []
+    for spine, law in children:
+        a, b = float(spine.t[spine.k]), float(spine.t[-spine.k - 1])
+        s = np.linspace(a, b, max(int((b - a) / 0.05), 2) + 1)
+        d = np.linalg.norm(spine(s) - c, axis=1)
+        out = np.flatnonzero(d >= radius)
+        if not len(out) or out[0] == 0:
+            continue
+        p = spine(s[out[0]]) - c
+        exits.append(p / np.linalg.norm(p))
+        rho.append(np.arcsin(min(float(np.ravel(law(s[out[0]]))[0]) / radius, 1.0)))
+    return np.array(exits, float).reshape(-1, 3), np.array(rho, float)
+
+
+def dome_pole(tangent: np.ndarray, seam: np.ndarray,
+              openings: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """The direction of an end dome's pole (the sphere's singular point).
+
+    Children that start at a vessel's end leave through its dome near the tip,
+    where the pole would be, and OCCT's booleans and mesher fail where the edge
+    of a child's opening passes through the pole (the union in pieces, a child
+    lost; a triangulation folded over itself). Where children leave through the
+    dome (``openings``, :func:`dome_openings`), the pole is tilted
+    :data:`DOME_TILT_DEG` from the tip, across the wall's seam (towards
+    ``tangent`` x ``seam`` or its opposite: the sphere's seam then runs from the
+    wall's seam point over the dome), to the side whose smallest angle to the
+    edge of any opening is larger.
+
+    Parameters
+    ----------
+    tangent : (3,) array
+        The vessel's unit tangent at its end (the dome's tip).
+    seam : (3,) array
+        Unit direction of the wall's seam point on the dome's rim (normal to ``tangent``).
+    openings : (directions, angles) or None
+
+    Returns
+    -------
+    (3,) array
+        Unit direction of the pole (``tangent`` without openings, or with
+        ``DOME_TILT_DEG = None``).
+    """
+    t = np.asarray(tangent, float) / np.linalg.norm(tangent)
+    if DOME_TILT_DEG is None or openings is None or not len(openings[0]):
+        return t
+    side = np.cross(t, np.asarray(seam, float))
+    side /= np.linalg.norm(side)
+    tilt = np.radians(min(float(DOME_TILT_DEG), DOME_MAX_TILT_DEG))
+    cand = np.cos(tilt) * t + np.sin(tilt) * np.array([side, -side])
+    ang = np.arccos(np.clip(cand @ np.asarray(openings[0], float).T, -1.0, 1.0))
+    clearance = np.abs(ang - np.asarray(openings[1], float)[None, :]).min(axis=1)
+    return cand[int(clearance[1] > clearance[0])]
+
+
 def dome_face(wall: Geom_BSplineSurface, centre: np.ndarray, tangent: np.ndarray, radius: float,
-              v: float | None = None) -> TopoDS_Face:
+              v: float | None = None, openings: tuple[np.ndarray, np.ndarray] | None = None
+              ) -> TopoDS_Face:
     """A hemisphere that closes a tube wall at its end, as a face on an exact ``Geom_SphericalSurface``.
 
     Its rim is the wall's end section (an exact circle of ``radius`` around
@@ -428,14 +526,46 @@ def dome_face(wall: Geom_BSplineSurface, centre: np.ndarray, tangent: np.ndarray
         The section's radius (mm).
     v : float, optional
         The wall parameter of the section (default: the wall's last V).
+    openings : (directions, angles), optional
+        Where children leave through the dome (:func:`dome_openings`): the
+        sphere's pole, its parametrization's singular point, is then tilted
+        away from the tip (:func:`dome_pole`), and the sphere's seam runs from
+        the wall's seam point to it. Default: the pole at the tip.
     """
     _u0, _u1, _v0, v1 = wall.Bounds()
     p = wall.Value(0.0, v1 if v is None else float(v))
     seam = np.array([p.X(), p.Y(), p.Z()]) - np.asarray(centre, float)
     t = np.asarray(tangent, float) / np.linalg.norm(tangent)
     seam -= (seam @ t) * t
-    axes = gp_Ax3(gp_Pnt(*map(float, centre)), gp_Dir(*map(float, t)), gp_Dir(*map(float, seam)))
-    return BRepBuilderAPI_MakeFace(gp_Sphere(axes, float(radius)), 0.0, 2.0 * np.pi, 0.0, 0.5 * np.pi).Face()
+    seam /= np.linalg.norm(seam)
+    z = dome_pole(t, seam, openings)
+    tilt = float(np.degrees(np.arccos(np.clip(z @ t, -1.0, 1.0))))
+    if tilt < 1e-6:
+        axes = gp_Ax3(gp_Pnt(*map(float, centre)), gp_Dir(*map(float, t)), gp_Dir(*map(float, seam)))
+        sphere = gp_Sphere(axes, float(radius))
+        return BRepBuilderAPI_MakeFace(sphere, 0.0, 2.0 * np.pi, 0.0, 0.5 * np.pi).Face()
+    if tilt > DOME_MAX_TILT_DEG + 1e-9:
+        raise GeometryError(f"dome_face: the pole is {tilt:.1f} deg from the tip (at most "
+                            f"{DOME_MAX_TILT_DEG:g})")
+    # the sphere's meridian U = 0 through the wall's seam point; the face bounded by the rim circle
+    x = seam - (seam @ z) * z
+    x /= np.linalg.norm(x)
+    c = gp_Pnt(*map(float, centre))
+    axes = gp_Ax3(c, gp_Dir(*map(float, z)), gp_Dir(*map(float, x)))
+    if float(np.cross(t, seam) @ z) < 0.0:  # tilted the other way: the parameters turn the other way too
+        axes.YReverse()
+    surface = Geom_SphericalSurface(axes, float(radius))
+    rim = BRepBuilderAPI_MakeEdge(gp_Circ(gp_Ax2(c, gp_Dir(*map(float, t)), gp_Dir(*map(float, seam))),
+                                          float(radius))).Edge()
+    wire = BRepBuilderAPI_MakeWire(rim).Wire()
+    tip = BRepBuilderAPI_MakeVertex(gp_Pnt(*map(float, np.asarray(centre, float) + radius * t))).Vertex()
+    for w in (wire, TopoDS.Wire_s(wire.Reversed())):  # the side that holds the tip
+        fix = ShapeFix_Face(BRepBuilderAPI_MakeFace(surface, w, True).Face())
+        fix.Perform()
+        face = fix.Face()
+        if BRepExtrema_DistShapeShape(tip, face).Value() < 1e-7:
+            return face
+    raise GeometryError("dome_face: no hemisphere on the tilted sphere")
 
 
 def _boundary_circles(face: TopoDS_Face) -> list:
@@ -474,9 +604,10 @@ def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None
         A wall made by :func:`tube_surface`.
     v_range : (float, float), optional
         Part of the wall to close (V = spine parameter); default all of it.
-    end_dome : (centre, tangent, radius), optional
+    end_dome : (centre, tangent, radius[, openings]), optional
         Close the end with the hemisphere of :func:`dome_face` instead of
-        a disc (the spine's end point, its unit tangent and the end radius).
+        a disc (the spine's end point, its unit tangent, the end radius and
+        optionally where children leave through it).
 
     Returns
     -------
@@ -508,7 +639,8 @@ def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None
         caps.append(mk.Face())
     fixed = None
     if end_dome is not None:
-        caps[1] = dome_face(surface, *end_dome, v=v1)
+        centre, tangent, r_end, *openings = end_dome
+        caps[1] = dome_face(surface, centre, tangent, r_end, v=v1, openings=openings[0] if openings else None)
     else:
         shell = TopoDS_Shell()
         builder = BRep_Builder()
@@ -535,7 +667,8 @@ def tube_solid(surface: Geom_BSplineSurface, v_range: tuple[float, float] | None
 def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolate.BSpline,
                 radius: interpolate.BSpline, station_step_mm: float = 2.0,
                 cuts: tuple[float, ...] | list[float] = (), end: str = "flat",
-                seam_deg: float = 0.0, neck_mm: float = 0.0) -> BranchPipe:
+                seam_deg: float = 0.0, neck_mm: float = 0.0,
+                dome_openings: tuple[np.ndarray, np.ndarray] | None = None) -> BranchPipe:
     """The closed pipe of one branch (see :func:`tube_surface`) with its end data.
 
     Parameters
@@ -565,6 +698,9 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
         Length of the pipe's start that lies inside its parent necked down
         (``VesselTree.pipe_specs``: a child starting at its parent's end): the
         pipe's ``start_radius`` and its probe points are taken from there on.
+    dome_openings : (directions, angles), optional
+        Where children leave through the end dome (:func:`dome_openings`;
+        :func:`dome_face` tilts the sphere's pole away from the tip then).
 
     Returns
     -------
@@ -586,7 +722,7 @@ def branch_pipe(branch_id: int, name: str, parent: int | None, spine: interpolat
     a_seen = a + float(neck_mm)  # where the pipe's own radius starts
     r0, r1 = float(np.ravel(radius(a_seen))[0]), float(np.ravel(radius(b))[0])
     t1 = d(b) / np.linalg.norm(d(b))
-    dome = (spine(b), t1, r1) if end == "dome" else None
+    dome = (spine(b), t1, r1, dome_openings) if end == "dome" else None
     if not cuts:
         solid, wall, cap0, cap1 = tube_solid(surface, end_dome=dome)
         walls: tuple[TopoDS_Face, ...] = (wall,)
