@@ -419,9 +419,12 @@ def tube_surface(spine: interpolate.BSpline, radius: interpolate.BSpline | np.nd
 
 #: Largest tilt (degrees) of an end dome's pole from its tip: the pole stays well inside the rim.
 DOME_MAX_TILT_DEG = 60.0
-#: Tilt (degrees) of the pole of the end dome of a vessel with children from its tip (None: at
-#: the tip, as before 2026-12-07).
+#: Tilt (degrees) of the pole of an end dome from its tip where the edge of a child's opening
+#: passes near the tip (None: always at the tip, as before 2026-12-07).
 DOME_TILT_DEG: float | None = 45.0
+#: An end dome's pole stays at its tip unless the edge of a child's opening passes within this
+#: angle (degrees, seen from the dome's centre) of it.
+DOME_POLE_CLEARANCE_DEG = 15.0
 
 
 def dome_openings(centre: np.ndarray, radius: float,
@@ -472,12 +475,13 @@ def dome_pole(tangent: np.ndarray, seam: np.ndarray,
     Children that start at a vessel's end leave through its dome near the tip,
     where the pole would be, and OCCT's booleans and mesher fail where the edge
     of a child's opening passes through the pole (the union in pieces, a child
-    lost; a triangulation folded over itself). Where children leave through the
-    dome (``openings``, :func:`dome_openings`), the pole is tilted
-    :data:`DOME_TILT_DEG` from the tip, across the wall's seam (towards
-    ``tangent`` x ``seam`` or its opposite: the sphere's seam then runs from the
-    wall's seam point over the dome), to the side whose smallest angle to the
-    edge of any opening is larger.
+    lost; a triangulation folded over itself). Where the edge of an opening
+    (``openings``, :func:`dome_openings`) passes within
+    :data:`DOME_POLE_CLEARANCE_DEG` of the tip, the pole is tilted
+    :data:`DOME_TILT_DEG` from it, across the wall's seam (towards ``tangent``
+    x ``seam`` or its opposite: the sphere's seam then runs from the wall's
+    seam point over the dome), to the side whose smallest angle to the edge of
+    any opening is larger.
 
     Parameters
     ----------
@@ -499,10 +503,12 @@ def dome_pole(tangent: np.ndarray, seam: np.ndarray,
     side = np.cross(t, np.asarray(seam, float))
     side /= np.linalg.norm(side)
     tilt = np.radians(min(float(DOME_TILT_DEG), DOME_MAX_TILT_DEG))
-    cand = np.cos(tilt) * t + np.sin(tilt) * np.array([side, -side])
+    cand = np.array([t, np.cos(tilt) * t + np.sin(tilt) * side, np.cos(tilt) * t - np.sin(tilt) * side])
     ang = np.arccos(np.clip(cand @ np.asarray(openings[0], float).T, -1.0, 1.0))
-    clearance = np.abs(ang - np.asarray(openings[1], float)[None, :]).min(axis=1)
-    return cand[int(clearance[1] > clearance[0])]
+    clearance = np.degrees(np.abs(ang - np.asarray(openings[1], float)[None, :]).min(axis=1))
+    if clearance[0] >= DOME_POLE_CLEARANCE_DEG:
+        return t  # no opening's edge near the tip
+    return cand[1 + int(clearance[2] > clearance[1])]
 
 
 def dome_face(wall: Geom_BSplineSurface, centre: np.ndarray, tangent: np.ndarray, radius: float,
