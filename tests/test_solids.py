@@ -855,10 +855,11 @@ def test_edges_shorter_than_the_deflection_in_four_triangles_collapse():
 
 
 def test_a_face_folded_over_itself_round_a_pole_is_cut_out_and_filled(monkeypatch):
-    # tests/data/README.md: with its domes' poles at their tips (as swept before 2026-12-07),
-    # OCCT's triangulation of one hemispherical end cap of this tree folds over itself next to
-    # the sphere's pole, which the edge of a child's opening crosses (two edges, 0.12 and 0.32
-    # mm, in four triangles of that face each) at every deflection, healed or not. The fold is
+    # tests/data/README.md: with its domes' poles at their tips (as swept before 2026-12-07; the
+    # rule since leaves this cap's there too), OCCT's triangulation of one hemispherical end cap
+    # of this tree folds over itself next to the sphere's pole, which the edge of a child's
+    # opening crosses (two edges, 0.12 and 0.32 mm, in four triangles of that face each) at
+    # every deflection, healed or not. The fold is
     # cut out and its hole triangulated again: closed, every edge in two triangles, one
     # consistently wound body that holds the solid, and the new triangles on the cap's sphere
     # within 0.06 mm (OCCT's own triangles round that pole stray up to 0.25 mm from it).
@@ -889,6 +890,74 @@ def test_a_face_folded_over_itself_round_a_pole_is_cut_out_and_filled(monkeypatc
     sphere = BRepAdaptor_Surface(cap).Sphere()
     centre, radius = np.array(sphere.Location().Coord()), sphere.Radius()
     assert np.abs(np.linalg.norm(new - centre, axis=1) - radius).max() < 0.06
+
+
+def test_an_end_dome_tilts_its_pole_away_from_a_child_leaving_near_its_tip(monkeypatch):
+    # A dome (r = 1.5) whose child leaves 17 deg from its tip, its opening 23 deg wide (its edge
+    # 6 deg from the tip): the sphere's pole, the singular point of its parameters, goes 45 deg
+    # from the tip to the side away from the opening; the face is still the hemisphere round the
+    # end point (area 2 pi r^2, the tip on it). An opening whose edge keeps 15 deg from the tip
+    # leaves the pole there.
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
+    from OCP.BRepExtrema import BRepExtrema_DistShapeShape
+    from OCP.BRepGProp import BRepGProp
+    from OCP.gp import gp_Pnt
+    from OCP.GProp import GProp_GProps
+    from scipy import interpolate
+
+    import vesselcad.kernel.pipes as P
+
+    r, length = 1.5, 10.0
+    s = np.linspace(0.0, length, 11)
+    spine = interpolate.make_interp_spline(s, np.outer(s, [0.0, 0.0, 1.0]), k=3)
+    wall = P.tube_surface(spine, interpolate.make_interp_spline(s, np.full(len(s), r), k=3))
+    tangent = np.array([0.0, 0.0, 1.0])
+    exit_dir = np.array([np.sin(np.radians(17.0)), 0.0, np.cos(np.radians(17.0))])
+    rotated = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    for opening in (exit_dir, rotated @ exit_dir, rotated @ rotated @ exit_dir):
+        face = P.dome_face(wall, spine(length), tangent, r, openings=(opening[None], np.array([0.4])))
+        sphere = BRepAdaptor_Surface(face).Sphere()
+        pole = np.array(sphere.Position().Direction().Coord())
+        assert np.degrees(np.arccos(pole @ tangent)) == pytest.approx(45.0, abs=1e-6)
+        assert np.degrees(np.arccos(pole @ opening)) > 45.0  # tilted away from the opening
+        np.testing.assert_allclose(sphere.Location().Coord(), spine(length), atol=1e-12)
+        assert sphere.Radius() == pytest.approx(r, abs=1e-12)
+        g = GProp_GProps()
+        BRepGProp.SurfaceProperties_s(face, g, 1e-9)
+        assert g.Mass() == pytest.approx(2.0 * np.pi * r**2, rel=1e-6)
+        tip = BRepBuilderAPI_MakeVertex(gp_Pnt(0.0, 0.0, length + r)).Vertex()
+        assert BRepExtrema_DistShapeShape(tip, face).Value() < 1e-9
+    far = np.array([np.sin(np.radians(60.0)), 0.0, np.cos(np.radians(60.0))])
+    face = P.dome_face(wall, spine(length), tangent, r, openings=(far[None], np.radians([44.0])))
+    np.testing.assert_allclose(BRepAdaptor_Surface(face).Sphere().Position().Direction().Coord(), tangent)
+    monkeypatch.setattr(P, "DOME_TILT_DEG", None)  # as before: the pole at the tip
+    face = P.dome_face(wall, spine(length), tangent, r, openings=(exit_dir[None], np.array([0.4])))
+    np.testing.assert_allclose(BRepAdaptor_Surface(face).Sphere().Position().Direction().Coord(), tangent)
+
+
+def test_a_tree_whose_fuse_fell_apart_at_domed_ends_fuses_whole_with_tilted_poles(monkeypatch):
+    # tests/data/README.md: with the domes' poles at their tips, the general fuse of this tree
+    # loses three branches (a child leaves a dome with its opening's edge across the pole) and
+    # comes out in pieces, and the branch-by-branch union leaves two branches out. With the poles
+    # tilted away, one general fuse unites all of its main tree's 16 pipes, nothing lost.
+    import vesselcad.kernel.pipes as P
+    import vesselcad.kernel.solid as ks
+
+    path = Path(__file__).parent / "data" / "fuse_pieces_cs_2011.json"
+    others = [1, 18, 19, 20, 21]  # other trees (the solid holds the largest)
+    solid = vc.VesselTree.from_json(path).solid()
+    assert solid.union_warnings == []
+    assert sorted(solid.failed) == others and len(solid.pipes) == 16
+    check = solid.check()
+    assert check["valid"] and check["watertight"] and check["solids"] == 1
+    for pipe in solid.pipes:
+        assert ks._inside(solid.shape, pipe.trusted_probes()).all()
+    monkeypatch.setattr(P, "DOME_TILT_DEG", None)
+    before = vc.VesselTree.from_json(path).solid()
+    assert "the general fuse lost branches" in before.union_warnings[0]
+    assert sorted(before.failed) == sorted([*others, 7, 8])
+    assert before.volume < solid.volume - 100.0
 
 
 def test_a_picture_mesh_is_one_unchecked_triangulation(y_solid, monkeypatch):
@@ -1528,6 +1597,7 @@ def test_a_face_unification_that_never_ends_is_given_up_and_the_solid_delivered(
 
     monkeypatch.setattr(ks, "TIDY_TIMEOUT_S", 3.0)
     monkeypatch.setattr("vesselcad.tree.END_INSIDE_SHARE", None)  # as swept before children kept inside ends
+    monkeypatch.setattr("vesselcad.kernel.pipes.DOME_TILT_DEG", None)  # and before domes' poles left tips
     tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "unify_hang_rca_2001.json")
     solid = tree.solid()
     assert "OCCT's face unification did not finish within 3 s: merged edges only" in solid.warnings
