@@ -28,16 +28,20 @@ LEFT = np.array([np.sin(ANGLE), 0.0, np.cos(ANGLE)])
 RIGHT = np.array([-np.sin(ANGLE), 0.0, np.cos(ANGLE)])
 
 
-def _y_tree():
-    """A Y: straight parent r = 2 along z (0..40), two r = 1.4 children from z = 20 at +-40 deg."""
-    return _tree([
+def _y_branches():
+    return [
         {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
          "radius": [2.0] * 30},
         {"id": 1, "parent": 0, "name": "left", "points": _line([0, 0, 20], LEFT, 25).tolist(),
          "radius": [1.4] * 30},
         {"id": 2, "parent": 0, "name": "right", "points": _line([0, 0, 20], RIGHT, 25).tolist(),
          "radius": [1.4] * 30},
-    ])
+    ]
+
+
+def _y_tree():
+    """A Y: straight parent r = 2 along z (0..40), two r = 1.4 children from z = 20 at +-40 deg."""
+    return _tree(_y_branches())
 
 
 @pytest.fixture(scope="module")
@@ -1861,16 +1865,8 @@ def _y_tree_with_twig():
     """The Y of :func:`_y_tree` with a r = 0.8 twig (id 3) from the middle of its right branch."""
     mid = np.array([0.0, 0.0, 20.0]) + 12.5 * RIGHT
     out = np.array([-np.cos(ANGLE), 0.0, np.sin(ANGLE)])  # normal to the right branch, in its plane
-    return _tree([
-        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
-         "radius": [2.0] * 30},
-        {"id": 1, "parent": 0, "name": "left", "points": _line([0, 0, 20], LEFT, 25).tolist(),
-         "radius": [1.4] * 30},
-        {"id": 2, "parent": 0, "name": "right", "points": _line([0, 0, 20], RIGHT, 25).tolist(),
-         "radius": [1.4] * 30},
-        {"id": 3, "parent": 2, "name": "twig", "points": _line(mid, out + RIGHT, 12).tolist(),
-         "radius": [0.8] * 30},
-    ])
+    return _tree([*_y_branches(), {"id": 3, "parent": 2, "name": "twig",
+                                   "points": _line(mid, out + RIGHT, 12).tolist(), "radius": [0.8] * 30}])
 
 
 def _lossy_fuse(monkeypatch, lose_again):
