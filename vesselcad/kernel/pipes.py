@@ -550,9 +550,6 @@ def dome_face(wall: Geom_BSplineSurface, centre: np.ndarray, tangent: np.ndarray
         axes = gp_Ax3(gp_Pnt(*map(float, centre)), gp_Dir(*map(float, t)), gp_Dir(*map(float, seam)))
         sphere = gp_Sphere(axes, float(radius))
         return BRepBuilderAPI_MakeFace(sphere, 0.0, 2.0 * np.pi, 0.0, 0.5 * np.pi).Face()
-    if tilt > DOME_MAX_TILT_DEG + 1e-9:
-        raise GeometryError(f"dome_face: the pole is {tilt:.1f} deg from the tip (at most "
-                            f"{DOME_MAX_TILT_DEG:g})")
     # the sphere's meridian U = 0 through the wall's seam point; the face bounded by the rim circle
     x = seam - (seam @ z) * z
     x /= np.linalg.norm(x)
