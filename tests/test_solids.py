@@ -1498,7 +1498,7 @@ def test_a_tree_whose_root_cannot_be_built_says_why(monkeypatch):
         _y_tree().solid()
 
 
-def test_a_tree_with_two_roots_keeps_the_larger_and_says_why():
+def test_a_tree_with_two_roots_keeps_the_longer_and_says_why():
     y = [
         {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
          "radius": [2.0] * 30},
@@ -1509,9 +1509,37 @@ def test_a_tree_with_two_roots_keeps_the_larger_and_says_why():
              "radius": [1.0] * 30}
     solid = _tree([*y, stray]).solid()
     assert solid.branch_ids == [0, 1]
-    assert solid.failed == {5: "the root of another tree (1 branch); one solid holds one tree: the largest, "
-                                "from root 0 (2 branches)"}
+    # 40 mm + 25 mm (and the child's lead-in, up to its parent's 2 mm radius, inside the parent)
+    m = re.fullmatch(r"the root of another tree \(1 branch, (\d+) mm\); one solid holds one tree: "
+                     r"the longest, from root 0 \(2 branches, (\d+) mm\)", solid.failed[5])
+    assert m and int(m[1]) == 20 and 65 <= int(m[2]) <= 67
+    assert list(solid.failed) == [5]
     assert solid.volume == pytest.approx(_tree(y).solid().volume, rel=1e-9)
+
+
+def test_a_long_vessel_wins_over_a_tree_of_more_but_shorter_branches():
+    # A reconstruction can break into a tree of a few short pieces and a long vessel
+    # with no link to them (end-to-end rca 2013 with the model's labels: 4 branches of 28 mm
+    # were kept, a 78 mm tree of 3 left out): the solid keeps the most vessel, not the most pieces.
+    stubs = [
+        {"id": 0, "parent": None, "name": "root", "points": _line([0, 0, 0], [0, 0, 1], 10).tolist(),
+         "radius": [1.5] * 30},
+        {"id": 1, "parent": 0, "name": "a", "points": _line([0, 0, 10], LEFT, 8).tolist(),
+         "radius": [1.0] * 30},
+        {"id": 2, "parent": 0, "name": "b", "points": _line([0, 0, 10], RIGHT, 8).tolist(),
+         "radius": [1.0] * 30},
+    ]
+    vessel = {"id": 7, "parent": None, "name": "vessel", "points": _line([40, 0, 0], [0, 1, 0], 50).tolist(),
+              "radius": [1.2] * 30}
+    solid = _tree([*stubs, vessel]).solid()
+    assert solid.branch_ids == [7]
+    assert set(solid.failed) == {0, 1, 2}
+    assert solid.failed[1] == solid.failed[2] == ("in the tree of root 0; one solid holds one tree: the "
+                                                  "longest, from root 7 (1 branch, 50 mm)")
+    assert solid.failed[0].startswith("the root of another tree (3 branches, ")
+    straight = vc.VesselTree.from_json({"units": "mm", "frame": "LPS", "branches": [vessel]}).solid()
+    assert solid.volume == pytest.approx(straight.volume, rel=1e-9)
+    assert solid.volume == pytest.approx(np.pi * 1.2**2 * 50, rel=2e-3)
 
 
 def test_a_stub_between_two_close_junctions_joins_the_vessel_after_it():

@@ -912,20 +912,30 @@ class VesselTree:
         roots = [s for s in specs if s["parent"] is None]
         failed: dict[int, str] = {sid: why for s in specs for sid, why in s.get("stubs", {}).items()}
         if len(roots) > 1:
+            # the tree with the most centreline is kept (not the most branches: a few short pieces
+            # would otherwise win over a long vessel with its side branches)
             sizes = {r["id"]: 0 for r in roots}
+            lengths = {r["id"]: 0.0 for r in roots}
             owner: dict[int, int] = {}
             for s in specs:
                 owner[s["id"]] = s["id"] if s["parent"] is None else owner[s["parent"]]
                 sizes[owner[s["id"]]] += 1
-            keep = max(sizes, key=lambda k: sizes[k])
+                sp = s["spine"]
+                lengths[owner[s["id"]]] += float(arc_length(sp(np.linspace(sp.t[sp.k], sp.t[-sp.k - 1],
+                                                                           201)))[-1])
+            keep = max(lengths, key=lambda k: lengths[k])
+
+            def size(root: int) -> str:
+                return f"{_n_branches(sizes[root])}, {lengths[root]:.0f} mm"
+
             for s in specs:
                 if owner[s["id"]] != keep:
                     if s["parent"] is None:
-                        whose = f"the root of another tree ({_n_branches(sizes[s['id']])})"
+                        whose = f"the root of another tree ({size(s['id'])})"
                     else:
                         whose = f"in the tree of root {owner[s['id']]}"
-                    failed[s["id"]] = (f"{whose}; one solid holds one tree: the largest, from root {keep} "
-                                       f"({_n_branches(sizes[keep])})")
+                    failed[s["id"]] = (f"{whose}; one solid holds one tree: the longest, from root {keep} "
+                                       f"({size(keep)})")
         pipes, warnings = [], []
         it = specs
         if progress:
