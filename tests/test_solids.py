@@ -697,12 +697,28 @@ def test_a_mesh_short_of_the_solid_is_healed_once_and_said(monkeypatch):
     assert len(said) == 1 and "covered only in part" in said[0] and "90.0% of the solid's volume" in said[0]
 
 
-def _data_tree_meshed(name: str, warn: str) -> tuple:
-    """The solid of a tree in tests/data (checked valid and closed) and its checked mesh, with
-    ``VesselcadWarning`` filtered by ``warn`` ("error": the mesh must need none)."""
+def _data_tree(name: str, root: int | None = None) -> vc.VesselTree:
+    """A tree in tests/data; with ``root``, the branches of that root's tree only (of a
+    reconstruction's forest, the tree a test was made for, whichever the solid would keep)."""
+    import json
+
+    data = json.loads((Path(__file__).parent / "data" / name).read_text())
+    if root is not None:
+        parent = {b["id"]: b["parent"] for b in data["branches"]}
+
+        def root_of(i: int) -> int:
+            return i if parent[i] is None else root_of(parent[i])
+
+        data["branches"] = [b for b in data["branches"] if root_of(b["id"]) == root]
+    return vc.VesselTree.from_json(data)
+
+
+def _data_tree_meshed(name: str, warn: str, root: int | None = None) -> tuple:
+    """The solid of a tree in tests/data (:func:`_data_tree`; checked valid and closed) and its
+    checked mesh, with ``VesselcadWarning`` filtered by ``warn`` ("error": the mesh must need none)."""
     import warnings
 
-    solid = vc.VesselTree.from_json(Path(__file__).parent / "data" / name).solid()
+    solid = _data_tree(name, root).solid()
     assert solid.check()["valid"] and solid.check()["watertight"]
     with warnings.catch_warnings():
         warnings.simplefilter(warn, vc.VesselcadWarning)
@@ -813,12 +829,14 @@ def test_a_wall_whose_seam_a_child_opening_crosses_is_meshed_whole(monkeypatch):
     # copy whose closed faces are cut into open pieces is meshed whole. (The union of the two
     # pieces of its branch 15, a vessel that doubles back along itself, lost the second piece;
     # that now counts as failed and cuts the branch short, which leaves its children out and
-    # the seam clear: the tree is fused here as it was, to keep the seam.)
+    # the seam clear: the tree is fused here as it was, to keep the seam. Of the reconstruction's
+    # three trees, the one of root 12, with the most branches, was fused then; the solid now
+    # keeps the longest, root 8's.)
     import vesselcad.kernel.pipes as P
     import vesselcad.kernel.solid as S
 
     monkeypatch.setattr(P, "PIECES_VOLUME_SLACK", None)
-    solid, mesh = _data_tree_meshed("mesh_partial_rca_2104.json", "error")  # nothing left to say
+    solid, mesh = _data_tree_meshed("mesh_partial_rca_2104.json", "error", root=12)  # nothing left to say
     assert solid._repair == 2
     assert S._mesh_defects(mesh.vertices, mesh.faces) == (0, 0)
     # the divided copy fails BRepCheck (faces unorientable in its shell), so its triangulation
@@ -1630,7 +1648,7 @@ def test_a_face_unification_that_never_ends_is_given_up_and_the_solid_delivered(
     monkeypatch.setattr(ks, "TIDY_TIMEOUT_S", 3.0)
     monkeypatch.setattr("vesselcad.tree.END_INSIDE_SHARE", None)  # as swept before children kept inside ends
     monkeypatch.setattr("vesselcad.kernel.pipes.DOME_TILT_DEG", None)  # and before domes' poles left tips
-    tree = vc.VesselTree.from_json(Path(__file__).parent / "data" / "unify_hang_rca_2001.json")
+    tree = _data_tree("unify_hang_rca_2001.json", root=13)  # the tree it hangs on, of the forest
     solid = tree.solid()
     assert "OCCT's face unification did not finish within 3 s: merged edges only" in solid.warnings
     check = solid.check()
