@@ -549,6 +549,54 @@ def test_a_branch_starting_on_another_in_both_views_is_joined_to_it_there():
     assert results[1].parent is None
 
 
+def test_a_branch_that_meets_another_in_both_views_but_not_in_depth_says_so():
+    # The fork of the test above with the child's start 14 mm off in depth: it starts on the
+    # parent in both images, but moving it that far would bend it out of shape. It stays linked
+    # and where it is (the solid leaves it out: its start is not inside the parent), and its
+    # warnings now say why (they said nothing).
+    from vesselcad.pipeline import MAX_JOIN_GAP_MM, _link_parents
+
+    s = np.linspace(0.0, 1.0, 81)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
+    child = s * [0.0, 25.0, 15.0]
+    err = np.clip(1.0 - np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(child, axis=0), axis=1))] / 20.0, 0, 1)
+    wrong = child + err[:, None] * [0.0, 0.0, 14.0]
+    assert MAX_JOIN_GAP_MM < 14.0
+    results = [_branch(0, parent), _branch(1, child, wrong)]
+    _link_parents(results, (VIEW_A, VIEW_B))
+    assert results[1].parent == 0
+    np.testing.assert_array_equal(results[1].points_mm, wrong)
+    assert any(w.startswith("starts on branch 0 in both views")
+               and "its 3D start lies 14.0 mm from branch 0, farther than" in w for w in results[1].warnings)
+
+
+def test_a_branch_linked_near_a_start_that_is_then_moved_goes_with_it(monkeypatch):
+    # Two vessels leave the fork F of a parent along x; both were reconstructed 5.5 mm off in
+    # depth at their starts, the second 4.2 mm beside the first (2 mm wide: the second's start
+    # is within 2 mm + 1.5 radii of it, not the other way round). The second is linked to the
+    # first, the first to the parent (it starts on it in both images), and the first's start is
+    # moved 5.5 mm onto F. The second's start then lies 6.9 mm from where it was linked, beyond
+    # the (here) 6 mm a start is moved on its own: it goes with the first, onto F (end-to-end
+    # lca 2006 with the model's labels: 10 and 12 mm).
+    import vesselcad.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "MAX_JOIN_GAP_MM", 6.0)
+    s = np.linspace(0.0, 1.0, 81)[:, None]
+    parent = np.array([-30.0, 0.0, 0.0]) + s * [60.0, 0.0, 0.0]
+    one = s * [0.0, 25.0, 15.0]
+    two = s * [0.0, -20.0, 18.0]
+    fade = np.clip(1.0 - np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(one, axis=0), axis=1))] / 15.0, 0, 1)
+    one_wrong = one + fade[:, None] * [0.0, 0.0, 5.5]
+    two_wrong = two + fade[:, None] * [4.2, 0.0, 5.5]
+    results = [_branch(0, parent), _branch(1, one, one_wrong), _branch(2, two, two_wrong)]
+    results[1].radius_mm = np.full(len(one), 2.0)
+    pipeline._link_parents(results, (VIEW_A, VIEW_B))
+    assert results[1].parent == 0 and results[2].parent == 1
+    assert np.linalg.norm(results[1].points_mm[0]) < 0.8                 # the first onto F
+    assert np.linalg.norm(results[2].points_mm[0] - results[1].points_mm[0]) < 0.8  # the second with it
+    assert any("(where that branch was moved 5." in w for w in results[2].warnings)
+
+
 def test_a_moved_start_is_brought_back_onto_the_vessels_of_both_images(monkeypatch):
     # The child of the test above, its reconstructed start 6 mm off in depth. Moving the start
     # onto the fork is a smooth shift that does not follow the vessel: in the images its first
@@ -851,10 +899,13 @@ def test_a_daughter_of_a_junction_whose_depth_disagrees_starts_inside_its_parent
     assert results[1].parent == 0
     assert np.linalg.norm(results[1].points_mm[0] - parent[-1]) < 1e-9
     assert results[1].warnings == ["start moved 5.0 mm onto branch 0, outside of whose lumen it was"]
-    # farther than MAX_JOIN_GAP_MM: linked, left where it is (the solid reports it)
+    # farther than MAX_JOIN_GAP_MM: linked, left where it is, and said (the solid reports it)
     far = [_branch(0, parent, end=(3, 4)), _branch(1, child, child + [0.0, 0.0, 12.0], start=(3, 4))]
     _link_parents(far)
-    assert far[1].parent == 0 and far[1].warnings == []
+    assert far[1].parent == 0 and far[1].warnings == [
+        "its 3D start lies 12.0 mm from branch 0, farther than the 10 mm a start is moved onto its parent: "
+        "left where it is (the two disagree in depth there)"]
+    np.testing.assert_array_equal(far[1].points_mm, child + [0.0, 0.0, 12.0])
 
 
 def test_branches_off_the_hearts_surface_are_left_out_but_not_near_the_ostium():

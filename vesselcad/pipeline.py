@@ -585,7 +585,10 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
     whose 3D start is then outside its parent's lumen (the two curves disagree in
     depth near the junction, where a vessel runs along the epipolar lines) has its
     start moved onto the parent, up to :data:`MAX_JOIN_GAP_MM`: the solid needs the
-    child to start inside its parent. ``adjust()``, if given, runs between choosing
+    child to start inside its parent; a parent whose own start was moved carries the
+    children that met it along, however far. A child whose start lies farther from
+    its parent (two branches that meet in both images but not in depth) stays linked
+    where it is, and its warnings say so. ``adjust()``, if given, runs between choosing
     the parents (on the curves as they were) and moving the starts (onto the curves
     as it leaves them).
     """
@@ -662,11 +665,16 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
     def depth(c: int) -> int:
         return 1 + depth(links[c][0]) if c in links else 0
 
+    shifted: dict[int, np.ndarray] = {}  # how far each branch's points were moved below
     for c in sorted(links, key=depth):  # parents first: a moved parent moves its children's targets
         p, i, why = links[c]
         child, par = by_id[c], by_id[p]
         target = par.points_mm[i]
         gap = float(np.linalg.norm(child.points_mm[0] - target))
+        # a child that met its parent where the parent's start has since been moved goes with it
+        # (lca 2006, the model's labels: two vessels from one junction, the one linked to the other
+        # 2.2 mm from its start, which was then moved 10 mm onto the vessel they leave)
+        carried = float(np.linalg.norm(shifted[p][i])) if p in shifted else 0.0
         if (c, p) in walks and MAX_BRIDGE_MM is not None and gap > max(MAX_JOIN_GAP_MM, par.radius_mm[i]):
             target, paths = _departure(par, views, walks[(c, p)])
             before = len(child.points_mm)
@@ -682,7 +690,8 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
                 child.warnings.append(f"not {why[:-2]}: no single 3D curve follows both paths (the "
                                       f"best stays {off[0]:.1f} and {off[1]:.1f} px off them, mean), so "
                                       "the gap was not bridged")
-        elif par.radius_mm[i] < gap <= MAX_JOIN_GAP_MM:
+        elif par.radius_mm[i] < gap <= MAX_JOIN_GAP_MM + carried:
+            before = child.points_mm
             moved = _moved_start(child.points_mm, target)
             if views is not None and ON_VESSEL_ROUNDS:
                 back = _back_on_vessels(moved, child.points_mm, views,
@@ -695,8 +704,18 @@ def _link_parents(results: list[BranchResult], views: tuple[CArmView, CArmView] 
                 if not at_end or a1 <= max(a0, ON_VESSEL_MAX_ANGLE_DEG):
                     moved = back
             child.points_mm = moved
+            if moved.shape == before.shape:
+                shifted[c] = moved - before
             child.warnings.append(f"{why}start moved {gap:.1f} mm onto branch {p}, outside of whose "
-                                  "lumen it was")
+                                  "lumen it was" + (f" (where that branch was moved {carried:.1f} mm)"
+                                                    if carried > par.radius_mm[i] else ""))
+        elif gap > par.radius_mm[i] and not ((c, p) in walks and MAX_BRIDGE_MM is not None):
+            # too far to move without bending the branch out of shape: the link stays (what the
+            # images say), the start where it is, and the branch says so (the solid, which needs
+            # the start inside the parent, leaves it out)
+            child.warnings.append(f"{why}its 3D start lies {gap:.1f} mm from branch {p}, farther than the "
+                                  f"{MAX_JOIN_GAP_MM:g} mm a start is moved onto its parent: left where it "
+                                  "is (the two disagree in depth there)")
 
 
 def _ostium(match: GraphMatch, phase: PhaseMatch) -> np.ndarray | None:

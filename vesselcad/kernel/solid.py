@@ -2019,6 +2019,7 @@ def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _His
     """
     solids = _subshapes(shape, TopAbs_SOLID)
     walls = {p.branch_id: [hash(f) for w in p.walls for f in history.images(w)] for p in pipes}
+    parent_of = {p.branch_id: p.parent for p in pipes}
     root = pipes[0].branch_id
 
     def owner(solid: TopoDS_Shape) -> set[int]:
@@ -2041,8 +2042,10 @@ def _keep_root_piece(shape: TopoDS_Shape, pipes: list[BranchPipe], history: _His
             history.ops.append(op)
             keep = _subshapes(merged, TopAbs_SOLID)[0]
             continue
-        for b in owner(s):
-            failed[b] = "does not touch the rest of the tree (its start is not inside its parent)"
+        piece = owner(s)
+        for b in piece:  # the piece's top branch is apart from its parent; the rest hang from it
+            failed[b] = ("does not touch the rest of the tree (its start is not inside its parent)"
+                         if parent_of[b] not in piece else f"its parent branch {parent_of[b]} was left out")
     return keep
 
 
