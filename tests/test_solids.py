@@ -1535,6 +1535,28 @@ def test_a_tree_with_two_roots_keeps_the_longer_and_says_why():
     assert solid.volume == pytest.approx(_tree(y).solid().volume, rel=1e-9)
 
 
+def test_a_child_apart_from_its_parent_is_left_out_and_its_children_say_why():
+    # A reconstruction can link a child whose 3D start lies well off its parent (the two disagree
+    # in depth): its pipe, and its own child's, come out of the union as a piece apart from the
+    # tree. The piece's top is named as not touching; the branch below it lost its parent (both
+    # were "does not touch" before, which is not true of the second).
+    tree = _tree([
+        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
+         "radius": [2.0] * 30},
+        {"id": 1, "parent": 0, "name": "apart", "points": _line([10, 0, 20], [1, 0, 0], 25).tolist(),
+         "radius": [1.2] * 30},
+        {"id": 2, "parent": 1, "name": "below", "points": _line([22, 0, 20], [0, 1, 0], 15).tolist(),
+         "radius": [0.8] * 30},
+    ])
+    solid = tree.solid()
+    assert solid.branch_ids == [0]
+    assert solid.failed == {1: "does not touch the rest of the tree (its start is not inside its parent)",
+                            2: "its parent branch 1 was left out"}
+    main = _tree([tree.to_dict()["branches"][0]]).solid()
+    assert solid.volume == pytest.approx(main.volume, rel=1e-9)
+    assert solid.check()["valid"] and solid.check()["watertight"]
+
+
 def test_a_long_vessel_wins_over_a_tree_of_more_but_shorter_branches():
     # A reconstruction can break into a tree of a few short pieces and a long vessel
     # with no link to them (end-to-end rca 2013 with the model's labels: 4 branches of 28 mm
