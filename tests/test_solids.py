@@ -23,6 +23,12 @@ def _tree(branches):
     return vc.VesselTree.from_json({"units": "mm", "frame": "LPS", "branches": branches})
 
 
+def _straight(bid, parent, name, p0, d, length, radius):
+    """A straight branch of constant radius in the centrelines.json layout."""
+    return {"id": bid, "parent": parent, "name": name, "points": _line(p0, d, length).tolist(),
+            "radius": [radius] * 30}
+
+
 ANGLE = np.radians(40.0)
 LEFT = np.array([np.sin(ANGLE), 0.0, np.cos(ANGLE)])
 RIGHT = np.array([-np.sin(ANGLE), 0.0, np.cos(ANGLE)])
@@ -1518,13 +1524,10 @@ def test_a_tree_whose_root_cannot_be_built_says_why(monkeypatch):
 
 def test_a_tree_with_two_roots_keeps_the_longer_and_says_why():
     y = [
-        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
-         "radius": [2.0] * 30},
-        {"id": 1, "parent": 0, "name": "left", "points": _line([0, 0, 20], LEFT, 25).tolist(),
-         "radius": [1.4] * 30},
+        _straight(0, None, "main", [0, 0, 0], [0, 0, 1], 40, 2.0),
+        _straight(1, 0, "left", [0, 0, 20], LEFT, 25, 1.4),
     ]
-    stray = {"id": 5, "parent": None, "name": "stray", "points": _line([30, 0, 0], [0, 1, 0], 20).tolist(),
-             "radius": [1.0] * 30}
+    stray = _straight(5, None, "stray", [30, 0, 0], [0, 1, 0], 20, 1.0)
     solid = _tree([*y, stray]).solid()
     assert solid.branch_ids == [0, 1]
     # 40 mm + 25 mm (and the child's lead-in, up to its parent's 2 mm radius, inside the parent)
@@ -1541,12 +1544,9 @@ def test_a_child_apart_from_its_parent_is_left_out_and_its_children_say_why():
     # tree. The piece's top is named as not touching; the branch below it lost its parent (both
     # were "does not touch" before, which is not true of the second).
     tree = _tree([
-        {"id": 0, "parent": None, "name": "main", "points": _line([0, 0, 0], [0, 0, 1], 40).tolist(),
-         "radius": [2.0] * 30},
-        {"id": 1, "parent": 0, "name": "apart", "points": _line([10, 0, 20], [1, 0, 0], 25).tolist(),
-         "radius": [1.2] * 30},
-        {"id": 2, "parent": 1, "name": "below", "points": _line([22, 0, 20], [0, 1, 0], 15).tolist(),
-         "radius": [0.8] * 30},
+        _straight(0, None, "main", [0, 0, 0], [0, 0, 1], 40, 2.0),
+        _straight(1, 0, "apart", [10, 0, 20], [1, 0, 0], 25, 1.2),
+        _straight(2, 1, "below", [22, 0, 20], [0, 1, 0], 15, 0.8),
     ])
     solid = tree.solid()
     assert solid.branch_ids == [0]
@@ -1562,23 +1562,18 @@ def test_a_long_vessel_wins_over_a_tree_of_more_but_shorter_branches():
     # with no link to them (end-to-end rca 2013 with the model's labels: 4 branches of 28 mm
     # were kept, a 78 mm tree of 3 left out): the solid keeps the most vessel, not the most pieces.
     stubs = [
-        {"id": 0, "parent": None, "name": "root", "points": _line([0, 0, 0], [0, 0, 1], 10).tolist(),
-         "radius": [1.5] * 30},
-        {"id": 1, "parent": 0, "name": "a", "points": _line([0, 0, 10], LEFT, 8).tolist(),
-         "radius": [1.0] * 30},
-        {"id": 2, "parent": 0, "name": "b", "points": _line([0, 0, 10], RIGHT, 8).tolist(),
-         "radius": [1.0] * 30},
+        _straight(0, None, "root", [0, 0, 0], [0, 0, 1], 10, 1.5),
+        _straight(1, 0, "a", [0, 0, 10], LEFT, 8, 1.0),
+        _straight(2, 0, "b", [0, 0, 10], RIGHT, 8, 1.0),
     ]
-    vessel = {"id": 7, "parent": None, "name": "vessel", "points": _line([40, 0, 0], [0, 1, 0], 50).tolist(),
-              "radius": [1.2] * 30}
+    vessel = _straight(7, None, "vessel", [40, 0, 0], [0, 1, 0], 50, 1.2)
     solid = _tree([*stubs, vessel]).solid()
     assert solid.branch_ids == [7]
     assert set(solid.failed) == {0, 1, 2}
     assert solid.failed[1] == solid.failed[2] == ("in the tree of root 0; one solid holds one tree: the "
                                                   "longest, from root 7 (1 branch, 50 mm)")
     assert solid.failed[0].startswith("the root of another tree (3 branches, ")
-    straight = vc.VesselTree.from_json({"units": "mm", "frame": "LPS", "branches": [vessel]}).solid()
-    assert solid.volume == pytest.approx(straight.volume, rel=1e-9)
+    assert solid.volume == pytest.approx(_tree([vessel]).solid().volume, rel=1e-9)
     assert solid.volume == pytest.approx(np.pi * 1.2**2 * 50, rel=2e-3)
 
 
