@@ -1772,6 +1772,40 @@ def test_the_helper_process_is_killed_when_a_job_overruns_and_restarted_for_the_
     worker.stop()
 
 
+def test_the_volume_integrated_in_the_helper_is_the_one_integrated_here():
+    # Reconstruction.write has the helper process integrate the volume while it draws the
+    # pictures: the figure must be the one this process gets (BinTools is exact), the capped
+    # cylinder's, and a fuse asked for meanwhile must wait for it and still be right.
+    import vesselcad.kernel.solid as ks
+
+    tube = _tree([_straight(0, None, "LAD", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 40.0, 2.0)]).solid()
+    ks.start_fuse_worker()
+    if not isinstance(ks._WORKER, ks.FuseWorker):
+        pytest.skip("no helper process on this machine")
+    tube._start_volume()
+    assert "volume_later" in tube._measures
+    y_pipes = _y_tree().solid().pipes
+    fused = ks._general_fuse([p.solid for p in y_pipes], 1e-5, True, 60.0)  # the queued volume first
+    assert fused is not None and shape_volume(fused.Shape()) > np.pi * 2.0**2 * 40.0
+    assert tube.volume == shape_volume(tube.shape)
+    assert tube.volume == pytest.approx(np.pi * 2.0**2 * 40.0, rel=1e-3)
+    assert "volume_later" not in tube._measures
+
+
+def test_a_volume_the_helper_does_not_answer_in_time_is_integrated_here(monkeypatch):
+    import vesselcad.kernel.solid as ks
+
+    tube = _tree([_straight(0, None, "LAD", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 40.0, 2.0)]).solid()
+    ks.start_fuse_worker()
+    if not isinstance(ks._WORKER, ks.FuseWorker):
+        pytest.skip("no helper process on this machine")
+    monkeypatch.setattr(ks, "VOLUME_TIMEOUT_S", 0.0)
+    tube._start_volume()
+    assert tube.volume == pytest.approx(np.pi * 2.0**2 * 40.0, rel=1e-3)  # here, after no answer
+    assert ks._WORKER._proc is None  # the helper still busy with it was stopped
+    assert not _y_tree().solid().failed  # and the next fuse starts a new one
+
+
 def test_without_a_helper_process_the_fuse_runs_here(monkeypatch):
     import sys
 
@@ -1782,6 +1816,8 @@ def test_without_a_helper_process_the_fuse_runs_here(monkeypatch):
     solid = _y_tree().solid()
     assert ks._WORKER is False  # tried once, then fused in this process
     assert not solid.failed and _roles(solid) == (1, 3)
+    solid._start_volume()  # nothing to start it in: integrated here when asked
+    assert "volume_later" not in solid._measures
     assert solid.check()["watertight"]
 
 

@@ -344,6 +344,13 @@ def write_outputs(rec: Reconstruction, out: Path, *, html: bool = True, progress
         raise OutputError(f"{out}: cannot create the output folder ({exc})") from None
     t0 = time.perf_counter()
     paths: dict[str, Path] = {}
+    if rec.solid is not None:
+        # the solid's volume (the STL's check, report.json) is integrated in the booleans' helper
+        # process while this one draws the pictures and triangulates the solid
+        rec.solid._start_volume()
+    paths["overlay.png"] = plot_overlays(rec, out / "overlay.png")
+    paths["phase.png"] = plot_error_matrix(rec.phase, out / "phase.png",
+                                           title=f"chosen frames ({rec.phase.frame_a}, {rec.phase.frame_b})")
     if rec.tree is not None:
         paths["centrelines.json"] = out / "centrelines.json"
         rec.tree.to_json(paths["centrelines.json"])
@@ -367,9 +374,6 @@ def write_outputs(rec: Reconstruction, out: Path, *, html: bool = True, progress
                     if note not in rec.warnings:
                         rec.warnings.append(note)
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    paths["overlay.png"] = plot_overlays(rec, out / "overlay.png")
-    paths["phase.png"] = plot_error_matrix(rec.phase, out / "phase.png",
-                                           title=f"chosen frames ({rec.phase.frame_a}, {rec.phase.frame_b})")
     rec.timings["write"] = time.perf_counter() - t0
     report = rec.report()
     report["files"] = sorted([*paths, "report.json"] + (["report.html"] if html else []))

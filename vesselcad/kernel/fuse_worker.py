@@ -10,6 +10,11 @@ the next job starts a new one. The face history the caller needs (which faces
 of the result each input face became) comes back as face indices and is
 replayed by :class:`MappedFuse`, which answers ``IsDeleted``/``Modified``
 like ``BRepAlgoAPI_Fuse``.
+
+The same helper integrates a solid's volume without the caller waiting for it
+(:meth:`FuseWorker.volume`): OCP holds the GIL through OCCT's calls, so a thread
+could not overlap the integration with the caller's next steps (the pictures and
+the triangulation of ``Reconstruction.write``); a second process can.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -116,6 +123,21 @@ class MappedFuse:
         return list(self._lookup(face) or [])
 
 
+class _Later:
+    """The answer of a job the caller did not wait for (:meth:`FuseWorker.volume`)."""
+
+    def __init__(self, worker: FuseWorker, files: list[str], deadline: float) -> None:
+        self.worker, self.files, self.deadline = worker, files, deadline
+        self.value: float | None = None
+
+    def __call__(self) -> float | None:
+        """Wait for the answer (until the job's deadline); None if the helper gave none."""
+        with self.worker._lock:
+            if self.worker._later is self:
+                self.worker._settle()
+        return self.value
+
+
 class FuseWorker:
     """A helper process that runs general fuses with a time limit.
 
@@ -123,6 +145,8 @@ class FuseWorker:
     ``None`` when OCCT reports failure, or raises :class:`TimeoutError` when the
     job overran (the helper is then killed) and :class:`OSError` when the helper
     cannot run here (the caller then fuses in its own process).
+    ``volume(shape, eps, timeout_s)`` starts a volume integration and returns at
+    once with a function that waits for its result.
     """
 
     def __init__(self) -> None:
@@ -133,6 +157,7 @@ class FuseWorker:
         self._dir = tempfile.mkdtemp(prefix="vesselcad-fuse-")
         self._lock = threading.Lock()
         self._pump: threading.Thread | None = None  # the thread reading the helper's output
+        self._later: _Later | None = None  # a job whose answer nobody has read yet
         atexit.register(self.close)
 
     def close(self) -> None:
@@ -215,21 +240,11 @@ class FuseWorker:
         if os.getpid() != self._pid:  # a forked copy (its lock may have been copied held)
             self.__init__()
         with self._lock:
+            self._settle()
             src = os.path.join(self._dir, "in.bin")
             dst = os.path.join(self._dir, "out.bin")
             _write_shapes(shapes, src)
-            job = json.dumps({"in": src, "out": dst, "fuzzy": fuzzy, "parallel": bool(parallel)}) + "\n"
-            for attempt in range(2):
-                proc = self._start()
-                try:
-                    self._wait_ready()
-                    proc.stdin.write(job)
-                    proc.stdin.flush()
-                    break
-                except OSError:  # it ended since the last job: start a new one, once
-                    self.stop()
-                    if attempt:
-                        raise
+            self._send({"in": src, "out": dst, "fuzzy": fuzzy, "parallel": bool(parallel)})
             try:
                 line = self._lines.get(timeout=timeout_s)
             except queue.Empty:
@@ -247,6 +262,59 @@ class FuseWorker:
                     os.remove(f)
             return MappedFuse(shapes, result, answer["images"])
 
+    def volume(self, shape: TopoDS_Shape, eps: float, timeout_s: float) -> Callable[[], float | None]:
+        """Start integrating ``shape``'s volume (``BRepGProp.VolumeProperties``, relative
+        accuracy ``eps``, closed shells only) in the helper and return at once.
+
+        Returns a function that waits for the volume (mm^3, the figure this process would
+        get: BinTools is exact) and gives None where the helper crashed, was stopped, or
+        took longer than ``timeout_s``. The next job of this worker waits for it first.
+        Raises OSError when no helper process can be started.
+        """
+        if os.getpid() != self._pid:
+            self.__init__()
+        with self._lock:
+            self._settle()
+            src = os.path.join(self._dir, "volume.bin")
+            BinTools.Write_s(shape, src)
+            self._send({"in": src, "volume": float(eps)})
+            self._later = _Later(self, [src], time.monotonic() + float(timeout_s))
+            return self._later
+
+    def _send(self, job: dict[str, Any]) -> None:
+        """Give the helper one job (the lock held), starting it if needed."""
+        line = json.dumps(job) + "\n"
+        for attempt in range(2):
+            proc = self._start()
+            try:
+                self._wait_ready()
+                proc.stdin.write(line)
+                proc.stdin.flush()
+                return
+            except OSError:  # it ended since the last job: start a new one, once
+                self.stop()
+                if attempt:
+                    raise
+
+    def _settle(self) -> None:
+        """Read the answer of the job started without waiting, if any (the lock held)."""
+        later, self._later = self._later, None
+        if later is None:
+            return
+        try:
+            line = self._lines.get(timeout=max(later.deadline - time.monotonic(), 0.0))
+        except queue.Empty:
+            line = None
+        if line is None:  # crashed on it, or still busy past its deadline
+            self.stop()
+        else:
+            with contextlib.suppress(ValueError, TypeError):
+                v = json.loads(line).get("volume")
+                later.value = float(v) if v is not None else None
+        for f in later.files:
+            with contextlib.suppress(OSError):
+                os.remove(f)
+
     def __del__(self) -> None:
         try:
             self.close()
@@ -256,6 +324,8 @@ class FuseWorker:
 
 def _serve() -> None:  # pragma: no cover - runs in the helper process
     from OCP.BRepAlgoAPI import BRepAlgoAPI_Fuse
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
     from OCP.TopTools import TopTools_ListOfShape
 
     def as_list(shapes: list[TopoDS_Shape]) -> TopTools_ListOfShape:
@@ -271,6 +341,12 @@ def _serve() -> None:  # pragma: no cover - runs in the helper process
     answers.flush()
     for line in sys.stdin:
         job = json.loads(line)
+        if "volume" in job:
+            props = GProp_GProps()
+            BRepGProp.VolumeProperties_s(_read_shape(job["in"]), props, float(job["volume"]), True)
+            answers.write(json.dumps({"volume": props.Mass()}) + "\n")
+            answers.flush()
+            continue
         shapes = _children(_read_shape(job["in"]))
         op = BRepAlgoAPI_Fuse()
         op.SetArguments(as_list(shapes[:1]))
