@@ -77,9 +77,10 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
                      fontsize=10)
         ax.set_axis_off()
     e = rec.errors
+    # two legend lines of about equal length (one of 190 characters ran past the figure's edges)
     fig.suptitle("segmentation (colours), matched 2D pieces (white), reprojected 3D centrelines (bold, "
-                 "numbered), failed branches (red dotted), root of each view (yellow star), phase key "
-                 "point (cyan +),\nstart joined to another tree across an unpaired stretch (magenta diamond)"
+                 "numbered), failed branches (red dotted),\nroot of each view (yellow star), phase key "
+                 "point (cyan +), start joined to another tree across an unpaired stretch (magenta diamond)"
                  + (f"\nreprojection {e['mean_px']:.2f} ± {e['sd_px']:.2f} px "
                     f"({e['mean_mm']:.3f} ± {e['sd_mm']:.3f} mm), max {e['max_px']:.2f} px" if e else ""),
                  fontsize=10)
