@@ -537,3 +537,28 @@ def test_vessels_alone_choose_the_pair_without_a_stationary_object(tmp_path):
     json.dumps(summary, allow_nan=False)  # report.json stays valid JSON: no NaN
     assert summary["error_mm"] is None and summary["point_mm"] is None and summary["objects"] == []
     assert plot_error_matrix(m, tmp_path / "phase.png").stat().st_size > 1000
+
+
+def test_the_phase_picture_of_short_runs_numbers_whole_frames(tmp_path, monkeypatch):
+    # Runs of a few frames (or one still image each): the axes give frame numbers, never 0.5.
+    import matplotlib.figure
+
+    case = generate_case(3, "lca", n_frames=3, rows=128, cols=128)
+    run_a, run_b = case.xa_runs()
+    m = match_phase(run_a, run_b, case.run_a.labels, case.run_b.labels)
+    ticks = []
+
+    def savefig(fig, *args, **kwargs):
+        for ax in fig.axes:
+            if ax.get_xlabel() == "frame of run B":
+                lo_x, hi_x = sorted(ax.get_xlim())
+                lo_y, hi_y = sorted(ax.get_ylim())
+                ticks.extend(t for t in ax.get_xticks() if lo_x <= t <= hi_x)
+                ticks.extend(t for t in ax.get_yticks() if lo_y <= t <= hi_y)
+        return original(fig, *args, **kwargs)
+
+    original = matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
+    plot_error_matrix(m, tmp_path / "phase.png")
+    assert len(ticks) >= 4
+    assert all(float(t).is_integer() for t in ticks)

@@ -1298,6 +1298,7 @@ def plot_error_matrix(match: PhaseMatch, path: str | os.PathLike, *, title: str 
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     panels = []
     if match.objects:
@@ -1328,6 +1329,8 @@ def plot_error_matrix(match: PhaseMatch, path: str | os.PathLike, *, title: str 
                     label=f"runner-up {match.runner_up}: {m[match.runner_up]:.3f}")
         ax.set_xlabel("frame of run B")
         ax.set_ylabel("frame of run A")
+        for axis in (ax.xaxis, ax.yaxis):  # frame numbers: no ticks between frames on short runs
+            axis.set_major_locator(MaxNLocator(integer=True))
         ax.set_title(heading, fontsize=9)
         ax.legend(fontsize=8, loc="lower right")
     # fixed margins: tight_layout measured every text for 0.15 s a picture
