@@ -358,10 +358,13 @@ class Reconstruction:
                 "error_mm": None if pair is None else round(float(pair.error_mm), 4)}
 
     def write(self, out: str | os.PathLike, *, html: bool = True, progress: bool = False) -> dict[str, Path]:
-        """Write ``tree.step/.stl/.glb``, ``centrelines.json/.vtp``, ``report.json/.html`` into ``out``.
+        """Write ``tree.step/.stl/.glb``, ``centrelines.json/.vtp``, ``overlay.png``, ``phase.png``
+        and ``report.json/.html`` into ``out``.
 
         Every file is written atomically; files that need the solid are skipped (with a
-        warning in the report) when there is none. Returns the paths written.
+        warning in the report) when there is none. The solid's volume (the STL's check,
+        report.json) is integrated in the booleans' helper process while the pictures are
+        drawn (docs/solids.md, step 6). Returns the paths written.
         """
         from .report import write_outputs
 
