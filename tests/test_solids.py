@@ -1804,6 +1804,12 @@ def test_a_volume_the_helper_does_not_answer_in_time_is_integrated_here(monkeypa
     assert tube.volume == pytest.approx(np.pi * 2.0**2 * 40.0, rel=1e-3)  # here, after no answer
     assert ks._WORKER._proc is None  # the helper still busy with it was stopped
     assert not _y_tree().solid().failed  # and the next fuse starts a new one
+    # with no helper running, none is started for a volume (that takes longer than integrating)
+    other = _tree([_straight(0, None, "LAD", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 30.0, 1.5)]).solid()
+    ks._WORKER.stop()
+    other._start_volume()
+    assert "volume_later" not in other._measures and ks._WORKER._proc is None
+    assert other.volume == pytest.approx(np.pi * 1.5**2 * 30.0, rel=1e-3)
 
 
 def test_without_a_helper_process_the_fuse_runs_here(monkeypatch):

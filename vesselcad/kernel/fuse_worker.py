@@ -262,18 +262,21 @@ class FuseWorker:
                     os.remove(f)
             return MappedFuse(shapes, result, answer["images"])
 
-    def volume(self, shape: TopoDS_Shape, eps: float, timeout_s: float) -> Callable[[], float | None]:
+    def volume(self, shape: TopoDS_Shape, eps: float, timeout_s: float) -> Callable[[], float | None] | None:
         """Start integrating ``shape``'s volume (``BRepGProp.VolumeProperties``, relative
-        accuracy ``eps``, closed shells only) in the helper and return at once.
+        accuracy ``eps``, closed shells only) in the running helper and return at once.
 
         Returns a function that waits for the volume (mm^3, the figure this process would
         get: BinTools is exact) and gives None where the helper crashed, was stopped, or
         took longer than ``timeout_s``. The next job of this worker waits for it first.
-        Raises OSError when no helper process can be started.
+        Returns None, starting nothing, where no helper is running: starting one (about a
+        second) takes longer than most integrations.
         """
         if os.getpid() != self._pid:
             self.__init__()
         with self._lock:
+            if self._proc is None or self._proc.poll() is not None:
+                return None
             self._settle()
             src = os.path.join(self._dir, "volume.bin")
             BinTools.Write_s(shape, src)

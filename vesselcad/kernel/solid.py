@@ -475,7 +475,7 @@ class VesselSolid:
         """Start integrating the volume in the booleans' helper process, for :attr:`volume`
         to read later: OCCT's integration (0.3-1.4 s on end-to-end trees) then runs while this
         process draws the pictures and triangulates the solid (``Reconstruction.write``).
-        Nothing happens where the volume is known or no helper can run (``volume`` then
+        Nothing happens where the volume is known or no helper is running (``volume`` then
         integrates it here, as before)."""
         if "volume" in self._measures or "volume_later" in self._measures or FUSE_TIMEOUT_S is None:
             return
@@ -484,9 +484,12 @@ class VesselSolid:
         if worker is None:
             return
         try:
-            self._measures["volume_later"] = worker.volume(self.shape, PROPS_EPS, VOLUME_TIMEOUT_S)
+            later = worker.volume(self.shape, PROPS_EPS, VOLUME_TIMEOUT_S)
         except OSError:  # no helper process can run here
             _WORKER = False
+            return
+        if later is not None:  # None: no helper running (one is started for booleans only)
+            self._measures["volume_later"] = later
 
     @property
     def area(self) -> float:
