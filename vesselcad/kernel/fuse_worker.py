@@ -266,9 +266,10 @@ class FuseWorker:
         """Start integrating ``shape``'s volume (``BRepGProp.VolumeProperties``, relative
         accuracy ``eps``, closed shells only) in the running helper and return at once.
 
-        Returns a function that waits for the volume (mm^3, the figure this process would
-        get: BinTools is exact) and gives None where the helper crashed, was stopped, or
-        took longer than ``timeout_s``. The next job of this worker waits for it first.
+        Returns a function that waits for the volume (mm^3; the shape arrives exact and the
+        figure agrees with this process's to round-off) and gives None where the helper
+        crashed, was stopped, or took longer than ``timeout_s``. The next job of this worker
+        waits for it first.
         Returns None, starting nothing, where no helper is running: starting one (about a
         second) takes longer than most integrations.
         """
