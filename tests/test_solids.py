@@ -1793,16 +1793,32 @@ def test_the_volume_integrated_in_the_helper_is_the_one_integrated_here():
 
 
 def test_a_volume_the_helper_does_not_answer_in_time_is_integrated_here(monkeypatch):
+    import contextlib
+    import os
+    import signal
+
     import vesselcad.kernel.solid as ks
 
+    if not hasattr(signal, "SIGSTOP"):
+        pytest.skip("no SIGSTOP on this platform")
     tube = _tree([_straight(0, None, "LAD", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 40.0, 2.0)]).solid()
     ks.start_fuse_worker()
     if not isinstance(ks._WORKER, ks.FuseWorker):
         pytest.skip("no helper process on this machine")
-    monkeypatch.setattr(ks, "VOLUME_TIMEOUT_S", 0.0)
-    tube._start_volume()
-    assert tube.volume == pytest.approx(np.pi * 2.0**2 * 40.0, rel=1e-3)  # here, after no answer
-    assert ks._WORKER._proc is None  # the helper still busy with it was stopped
+    warm = _tree([_straight(0, None, "LAD", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 20.0, 1.0)]).solid()
+    warm._start_volume()
+    assert warm.volume > 0  # the helper is up and idle
+    monkeypatch.setattr(ks, "VOLUME_TIMEOUT_S", 0.5)
+    helper = ks._WORKER._proc
+    os.kill(helper.pid, signal.SIGSTOP)  # a helper that cannot answer
+    try:
+        tube._start_volume()
+        assert "volume_later" in tube._measures
+        assert tube.volume == pytest.approx(np.pi * 2.0**2 * 40.0, rel=1e-3)  # here, after no answer
+        assert ks._WORKER._proc is None  # the helper was stopped
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(helper.pid, signal.SIGCONT)
     assert not _y_tree().solid().failed  # and the next fuse starts a new one
     # with no helper running, none is started for a volume (that takes longer than integrating)
     other = _tree([_straight(0, None, "LAD", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 30.0, 1.5)]).solid()
