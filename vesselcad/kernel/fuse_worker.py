@@ -126,8 +126,8 @@ class MappedFuse:
 class _Later:
     """The answer of a job the caller did not wait for (:meth:`FuseWorker.volume`)."""
 
-    def __init__(self, worker: FuseWorker, files: list[str], deadline: float) -> None:
-        self.worker, self.files, self.deadline = worker, files, deadline
+    def __init__(self, worker: FuseWorker, file: str, deadline: float) -> None:
+        self.worker, self.file, self.deadline = worker, file, deadline
         self.value: float | None = None
 
     def __call__(self) -> float | None:
@@ -282,7 +282,7 @@ class FuseWorker:
             src = os.path.join(self._dir, "volume.bin")
             BinTools.Write_s(shape, src)
             self._send({"in": src, "volume": float(eps)})
-            self._later = _Later(self, [src], time.monotonic() + float(timeout_s))
+            self._later = _Later(self, src, time.monotonic() + float(timeout_s))
             return self._later
 
     def _send(self, job: dict[str, Any]) -> None:
@@ -315,9 +315,8 @@ class FuseWorker:
             with contextlib.suppress(ValueError, TypeError):
                 v = json.loads(line).get("volume")
                 later.value = float(v) if v is not None else None
-        for f in later.files:
-            with contextlib.suppress(OSError):
-                os.remove(f)
+        with contextlib.suppress(OSError):
+            os.remove(later.file)
 
     def __del__(self) -> None:
         try:

@@ -479,14 +479,12 @@ class VesselSolid:
         integrates it here, as before)."""
         if "volume" in self._measures or "volume_later" in self._measures or FUSE_TIMEOUT_S is None:
             return
-        global _WORKER
         worker = _worker()
         if worker is None:
             return
         try:
             later = worker.volume(self.shape, PROPS_EPS, VOLUME_TIMEOUT_S)
-        except OSError:  # no helper process can run here
-            _WORKER = False
+        except OSError:  # the helper ended as the job went out: integrated here
             return
         if later is not None:  # None: no helper running (one is started for booleans only)
             self._measures["volume_later"] = later
