@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import cv2
@@ -205,6 +206,9 @@ def test_bad_input_is_rejected(tmp_path, seg):
         vc.Segmenter(batch_size=0)
     with pytest.raises(ArgumentError, match="layout"):
         vc.Segmenter(layout="nhwc")
+    for bad in (0, -2, True):
+        with pytest.raises(ArgumentError, match="workers"):
+            vc.Segmenter(workers=bad)
     # onnxruntime would only warn and fall back to the CPU (with the model meant for another provider)
     for bad in ("CPUExecutionProvider", [], [3], [("CPUExecutionProvider", 1)]):
         with pytest.raises(ArgumentError, match="providers: expected"):
@@ -212,6 +216,53 @@ def test_bad_input_is_rejected(tmp_path, seg):
     with pytest.raises(ArgumentError, match="NoSuchExecutionProvider not available"):
         vc.Segmenter(providers=["NoSuchExecutionProvider", "CPUExecutionProvider"])
     assert vc.Segmenter(providers=[("CPUExecutionProvider", {})]).path.name == "gated_unet_int8.onnx"
+
+
+class _Meeting:
+    """A session whose first call in each of two threads waits for the other's: calls that do
+    not overlap in time break the barrier (after 60 s) instead of passing."""
+
+    def __init__(self, session):
+        self.session, self.barrier, self.threads = session, threading.Barrier(2, timeout=60), set()
+
+    def run(self, *args, **kwargs):
+        me = threading.get_ident()
+        if me not in self.threads:
+            self.threads.add(me)
+            self.barrier.wait()
+        return self.session.run(*args, **kwargs)
+
+
+class _Refuse:
+    def run(self, *args, **kwargs):
+        raise AssertionError("the workers' shared session was called")
+
+
+def test_workers_run_network_calls_side_by_side(phantom_frames):
+    # two calls on one thread each keep two cores busier than one call on two threads; the
+    # labels and probabilities are those of one call after another
+    frames = np.ascontiguousarray(phantom_frames[0][:5, 100:260, 80:272])  # 160 x 192
+    one = vc.Segmenter("fp32", threads=2, workers=1)
+    two = vc.Segmenter("fp32", threads=2, workers=2)
+    assert (one.workers, two.workers) == (1, 2) and "workers=2" in repr(two)
+    assert vc.Segmenter("fp32", threads=2).workers == 2  # the default where two threads are allowed
+    assert vc.Segmenter("fp32", threads=1).workers == 1
+    assert vc.Segmenter("fp32", threads=1, workers=4).workers == 1  # at most one per thread
+    shared = two._shared
+    # five frames: batches of 3 and 2, one per worker; with test-time augmentation each batch's
+    # eight network calls run in its worker; one frame: its eight calls spread over both workers
+    for x, tta in ((frames, False), (frames, True), (frames[0], True)):
+        lab1, p1 = one(x, return_proba=True, tta=tta)
+        two._shared = _Meeting(shared)
+        lab2, p2 = two(x, return_proba=True, tta=tta)
+        assert len(two._shared.threads) == 2 and not two._shared.barrier.broken
+        assert np.array_equal(lab1, lab2)
+        np.testing.assert_allclose(p2, p1, rtol=0, atol=1e-5)
+        assert np.array_equal(lab2, two(x, tta=tta))  # labels alone (the scores' arg-max)
+    # a call with one network call to make runs it on all the threads (the lone session)
+    two._shared = _Refuse()
+    assert np.array_equal(two(frames[1]), one(frames[1]))
+    two._shared = shared
 
 
 def test_both_convolution_layouts_compute_the_same_network(phantom_frames):
