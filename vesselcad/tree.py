@@ -104,6 +104,12 @@ INLET_EXTENSION_MAX_RADII = 3.0
 INLET_MAX_CHILD_ANGLE_DEG = 150.0
 #: Smallest radius a pipe gets (mm).
 MIN_RADIUS_MM = 0.05
+#: Where no rebuild keeps a branch's points within the tolerance (they are noisier than it),
+#: the tolerance becomes this many times the densest fit's largest deviation (:func:`fit_spine`).
+NOISY_TOL_FACTOR = 1.5
+#: A fitted centreline longer than the polyline of its points by more than this share swings
+#: round between them (:func:`fit_spine`: such a fit counts as missing the tolerance).
+SWING_SHARE = 0.02
 #: Wall-to-wall distance :meth:`VesselTree.separated` leaves between vessels that touched (mm).
 CLEARANCE_MM = 0.2
 
@@ -148,26 +154,41 @@ def fit_spine(points: Any, tol_mm: float = TOL_MM, max_knot_step_mm: float = 20.
     x = np.r_[s, s[ends]]
     y = np.vstack([p, p[ends]])
 
-    def fit(step: float) -> tuple[interpolate.BSpline, float]:
+    def fit(step: float) -> tuple[interpolate.BSpline, float, bool]:
         # A whisper of curvature penalty keeps knot spans with few samples from oscillating.
         spl = fit_pspline(x, y, step, 1e-6, domain=(0.0, length))
-        return spl, float(np.max(np.linalg.norm(spl(s) - p, axis=1)))
+        err = float(np.max(np.linalg.norm(spl(s) - p, axis=1)))
+        # ... not always: a span with one sample, beside spans of many, can still swing round
+        # between samples (a loop the pipe's radius clamp then pinches to a thread)
+        q = spl(np.linspace(0.0, length, max(int(length / 0.05), 50) + 1))
+        swings = float(np.sum(np.linalg.norm(np.diff(q, axis=0), axis=1))) > (1.0 + SWING_SHARE) * length
+        return spl, err, swings
+
+    def meets(fitted: tuple[interpolate.BSpline, float, bool], limit: float) -> bool:
+        return fitted[1] <= limit and not fitted[2]
 
     # Number of knot spans: at most one per 0.5 mm and one per two samples.
     lo_n, hi_n = 1, max(min(int(np.ceil(length / 0.5)), (len(p) - 1) // 2), 1)
     hi_n = max(hi_n, int(np.ceil(length / max_knot_step_mm)))
-    best = fit(length / hi_n)
-    if best[1] > tol_mm:
-        return best  # the data are noisier than the tolerance: densest fit
+    densest = fit(length / hi_n)
+    limit = tol_mm
+    if not meets(densest, tol_mm):
+        # The points are noisier than the tolerance: the densest fit would follow their noise
+        # (and swing between samples where they are sparse). The tolerance becomes what the
+        # data allow, and the fewest knots that keep it are taken.
+        limit = max(tol_mm, NOISY_TOL_FACTOR * densest[1])
+    best = densest if meets(densest, limit) else None
     lo_n = max(lo_n, int(np.ceil(length / max_knot_step_mm)))
     while lo_n < hi_n:
         mid = (lo_n + hi_n) // 2
         cand = fit(length / mid)
-        if cand[1] <= tol_mm:
+        if meets(cand, limit):
             hi_n, best = mid, cand
         else:
             lo_n = mid + 1
-    return best
+    if best is None:  # nothing found (every fit swings): the densest, as it is
+        best = densest
+    return best[0], best[1]
 
 
 def fit_radius_law(param: Any, radius: Any, length: float, knot_step_mm: float = 4.0,
