@@ -7,7 +7,8 @@ names), and prepares the branches for the pipes:
 
 1. **rebuild** (:meth:`VesselTree.rebuilt`): each branch becomes a clamped
    cubic B-spline with the fewest uniform knots that keep every input point
-   within ``tol_mm`` (default 0.05 mm), end points held; its radius becomes a
+   within ``tol_mm`` (default 0.05 mm), end points held (points noisier than
+   that: within what the data allow, :func:`fit_spine`); its radius becomes a
    smooth law along the same parameter (P-spline, 4 mm knots).
 2. **merge** (:meth:`VesselTree.merged`): where a branch ends at the start of a
    child that continues it (end tangents within ``max_angle_deg``), the two
@@ -118,6 +119,13 @@ CLEARANCE_MM = 0.2
 def fit_spine(points: Any, tol_mm: float = TOL_MM, max_knot_step_mm: float = 20.0
               ) -> tuple[interpolate.BSpline, float]:
     """Cubic B-spline through 3D points with the fewest uniform knots that meet ``tol_mm``.
+
+    Where no fit meets it (the points are noisier than the tolerance), the
+    tolerance becomes :data:`NOISY_TOL_FACTOR` times the densest fit's largest
+    deviation: the densest fit would follow the noise. A fit longer than the
+    polyline of the points by more than :data:`SWING_SHARE` swings round between
+    samples (a knot span with one sample beside spans of many) and does not
+    count as meeting any tolerance.
 
     Parameters
     ----------
