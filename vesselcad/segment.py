@@ -393,8 +393,9 @@ class Segmenter:
         proba = np.empty((n, self.n_classes, h, w), np.float32) if return_proba else None
         size = self.batch_size
         side = self.workers > 1 and n > 1
-        if side:  # batches shared evenly among the workers (5 frames: 3 + 2, not 4 + 1)
-            size = min(size, -(-n // self.workers))
+        if side:  # as many batches for each worker, of at most batch_size frames (12 frames: 4 x 3)
+            rounds = -(-n // (self.workers * size))
+            size = -(-n // (self.workers * rounds))
         starts = range(0, n, size)
         if len(starts) == 1:
             side = False
