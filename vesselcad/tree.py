@@ -184,9 +184,9 @@ def fit_spine(points: Any, tol_mm: float = TOL_MM, max_knot_step_mm: float = 20.
     hi_n = max(hi_n, int(np.ceil(length / max_knot_step_mm)))
     densest = fit(length / hi_n)
     limit = tol_mm
-    if not meets(densest, tol_mm) and NOISY_TOL_FACTOR is None:
-        return densest[0], densest[1]
     if not meets(densest, tol_mm):
+        if NOISY_TOL_FACTOR is None:
+            return densest[0], densest[1]
         # The points are noisier than the tolerance: the densest fit would follow their noise
         # (and swing between samples where they are sparse). The tolerance becomes what the
         # data allow, and the fewest knots that keep it are taken.
