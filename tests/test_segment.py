@@ -206,9 +206,12 @@ def test_bad_input_is_rejected(tmp_path, seg):
         vc.Segmenter(batch_size=0)
     with pytest.raises(ArgumentError, match="layout"):
         vc.Segmenter(layout="nhwc")
-    for bad in (0, -2, True):
-        with pytest.raises(ArgumentError, match="workers"):
-            vc.Segmenter(workers=bad)
+    for name in ("workers", "threads", "batch_size"):
+        for bad in (0, -2, True, "2", 1.5):
+            with pytest.raises(ArgumentError, match=name):
+                vc.Segmenter(**{name: bad})
+    with pytest.raises(ArgumentError, match="batch_size"):
+        vc.Segmenter(batch_size=None)
     # onnxruntime would only warn and fall back to the CPU (with the model meant for another provider)
     for bad in ("CPUExecutionProvider", [], [3], [("CPUExecutionProvider", 1)]):
         with pytest.raises(ArgumentError, match="providers: expected"):

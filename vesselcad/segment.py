@@ -223,12 +223,10 @@ class Segmenter:
             path = Path(model)
         if not path.is_file():
             raise InputFileError(f"{path}: segmentation model file not found")
-        if int(batch_size) < 1:
-            raise ArgumentError(f"batch_size: expected >= 1, got {batch_size}")
-        if threads is not None and int(threads) < 1:
-            raise ArgumentError(f"threads: expected >= 1, got {threads}")
-        if workers is not None and (isinstance(workers, bool) or int(workers) < 1):
-            raise ArgumentError(f"workers: expected >= 1, got {workers!r}")
+        for name, value in (("batch_size", batch_size), ("threads", threads), ("workers", workers)):
+            whole = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+            if (value is not None or name == "batch_size") and not (whole and value >= 1):
+                raise ArgumentError(f"{name}: expected a whole number >= 1, got {value!r}")
         if int(max_side) != 0 and int(max_side) < 64:
             raise ArgumentError(f"max_side: expected 0 or >= 64, got {max_side}")
         if layout not in LAYOUTS:
