@@ -406,17 +406,12 @@ class Segmenter:
                 proba[s:s + len(p)] = p
             return s
 
-        bar = None
-        if progress:
-            from tqdm.auto import tqdm
+        from tqdm.auto import tqdm
 
-            bar = tqdm(total=len(starts), desc="segment", unit="batch")
-        with _pool(self.workers if side else 1) as pool:
+        with _pool(self.workers if side else 1) as pool, tqdm(
+                total=len(starts), desc="segment", unit="batch", disable=not progress) as bar:
             for _ in pool(run, starts):
-                if bar is not None:
-                    bar.update()
-        if bar is not None:
-            bar.close()
+                bar.update()
         if single:
             labels = labels[0]
             proba = proba[0] if proba is not None else None
