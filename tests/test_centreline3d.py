@@ -155,6 +155,34 @@ def test_noisy_skeleton_accuracy():
     assert d.mean() <= 0.15 and np.percentile(d, 95) <= 0.6
 
 
+def test_pixel_skeletons_give_a_smooth_3d_curve_with_the_quantization_floor():
+    # Both projections rounded to pixel centres (a skeleton's staircase): fitted by the noise the
+    # fourth differences see (0.18 px here), the 2D curves follow the steps and the 3D curve
+    # zig-zags in depth (0.16 mm between samples 0.5 mm apart); with
+    # the floor of 1/sqrt(12) px they follow the true projections and the 3D curve the true one.
+    from vesselcad.splines import PIXEL_NOISE_PX
+
+    t = np.linspace(0.0, 1.0, 3000)
+    truth = np.stack([-25 + 50 * t, 8 * np.sin(3 * t), 10 * t + 4 * np.cos(4 * t)], axis=1)
+
+    def pixels(view):
+        q = np.round(view.project(truth))
+        return q[np.r_[True, np.any(np.diff(q, axis=0) != 0, axis=1)]]
+
+    out = {}
+    for floor in (0.01, PIXEL_NOISE_PX):
+        c = vc.intersect_centrelines(VA, pixels(VA), VB, pixels(VB), min_noise_px=floor)
+        s = c.sample_every(0.5)
+        bend = np.linalg.norm(np.diff(s, n=2, axis=0), axis=1)  # the truth's own: < 0.01 mm
+        out[floor] = (truth_distance(s, truth), np.sqrt(np.mean(bend**2)), c.noise_px)
+    d, zigzag, noise = out[PIXEL_NOISE_PX]
+    assert min(noise) >= PIXEL_NOISE_PX
+    assert out[0.01][1] > 0.05  # zig-zag of the step-following fits
+    assert zigzag < 0.02
+    assert d.mean() < 0.1 and d.max() < 0.4  # the largest at the ends, on their end pixels
+    assert d.mean() < out[0.01][0].mean()
+
+
 def test_branch_in_an_epipolar_plane_is_bridged_not_raised():
     # A segment inside the epipolar plane through the isocentre: both surfaces are
     # the same plane there, so only the end points fix the depth.

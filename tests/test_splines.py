@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from vesselcad.errors import ArgumentError
-from vesselcad.splines import arc_length, fit_curve_2d, fit_pspline
+from vesselcad.splines import PIXEL_NOISE_PX, arc_length, fit_curve_2d, fit_pspline, resample_by_arclength
 
 DATA = Path(__file__).parent / "data"
 
@@ -28,6 +28,40 @@ def test_pixel_staircase_fit_stays_on_the_points():
     d = np.linalg.norm(v[:, None] - seg_a[None] - t[..., None] * ab[None], axis=-1).min(axis=1)
     assert d.max() < 2.0
     assert abs(arc_length(v)[-1] - arc_length(pts)[-1]) < 0.05 * arc_length(pts)[-1]
+
+
+def _rasterized_arc() -> tuple[np.ndarray, float, np.ndarray]:
+    """An arc of radius 80 px rounded to pixel centres and resampled along them (as a skeleton piece)."""
+    th = np.linspace(0.2, 1.6, 4000)
+    pix = np.round(np.stack([200 + 80 * np.cos(th), 200 + 80 * np.sin(th)], axis=1))
+    pix = pix[np.r_[True, np.any(np.diff(pix, axis=0) != 0, axis=1)]]
+    return resample_by_arclength(pix, 0.9), 80.0, np.array([200.0, 200.0])
+
+
+def test_pixel_quantization_floor_smooths_the_staircase_onto_the_curve():
+    pts, radius, centre = _rasterized_arc()
+    raw = np.linalg.norm(pts - centre, axis=1) - radius
+    assert 0.2 < np.sqrt(np.mean(raw**2)) < 0.35  # the pixels' own error: about 1/sqrt(12) px
+    off = {}
+    for floor in (0.01, PIXEL_NOISE_PX):
+        spline, sigma = fit_curve_2d(pts, min_noise_px=floor)
+        u = np.linspace(spline.t[3], spline.t[-4], 3000)[100:-100]  # the ends rest on their end pixels
+        off[floor] = np.linalg.norm(spline(u) - centre, axis=1) - radius
+        assert sigma >= floor
+    # The estimate alone (fourth differences) sees little of the steps and the fit follows them;
+    # floored at the quantization's 1/sqrt(12) px it lies on the true arc within a fifth of that.
+    assert np.sqrt(np.mean(off[0.01] ** 2)) > 0.1
+    assert np.sqrt(np.mean(off[PIXEL_NOISE_PX] ** 2)) < 0.06
+    assert np.abs(off[PIXEL_NOISE_PX]).max() < 0.2
+    # A given noise is used as given, the floor only bounds the estimate.
+    assert fit_curve_2d(pts, noise_px=0.05, min_noise_px=PIXEL_NOISE_PX)[1] == pytest.approx(0.05)
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), "x", None])
+def test_bad_noise_floor_is_rejected(bad):
+    with pytest.raises(ArgumentError, match="min_noise_px"):
+        fit_curve_2d(np.array([[0.0, 0.0], [5.0, 1.0], [10.0, 3.0], [15.0, 6.0], [20.0, 10.0]]),
+                     min_noise_px=bad)
 
 
 def test_straight_line_fit_is_the_line():

@@ -26,7 +26,7 @@ from skimage import morphology
 
 from .errors import ArgumentError, VesselcadWarning
 from .geometry import CArmView, check_view
-from .splines import arc_length, fit_curve_2d
+from .splines import PIXEL_NOISE_PX, arc_length, fit_curve_2d
 
 __all__ = ["Landmark", "Branch2D", "Crossing", "CentrelineGraph", "centreline_graph", "catheter_tip"]
 
@@ -127,7 +127,9 @@ class Branch2D:
         Cubic B-spline of the points (px), parametrized by arc length, its
         smoothing chosen from the pixel noise (fitted on first access).
     noise_px : float
-        Pixel noise used for that smoothing (given, or estimated from the points).
+        Pixel noise used for that smoothing: given, or estimated from the
+        points but at least ``vesselcad.splines.PIXEL_NOISE_PX`` (the
+        skeleton's pixel quantization).
     """
 
     index: int
@@ -142,7 +144,8 @@ class Branch2D:
 
     def _fitted(self) -> tuple[interpolate.BSpline, float]:
         if self._fit is None:
-            self._fit = fit_curve_2d(self.points_px, noise_px=self.noise_request, name=f"branch {self.index}")
+            self._fit = fit_curve_2d(self.points_px, self.noise_request, f"branch {self.index}",
+                                     PIXEL_NOISE_PX)
         return self._fit
 
     @property

@@ -39,7 +39,7 @@ from scipy import interpolate, linalg
 from .epipolar import EpipolarPair, ordered_correspondence, sample_curve
 from .errors import ArgumentError
 from .geometry import CArmView, triangulate
-from .splines import fit_curve_2d, fit_pspline
+from .splines import MIN_NOISE_PX, fit_curve_2d, fit_pspline
 
 if TYPE_CHECKING:  # OCCT is imported on first use, keeping `import vesselcad` light
     from .kernel.centreline import Centreline3D
@@ -128,11 +128,12 @@ class _Branch:
     """One branch pair prepared for either method: fits, samples, correspondence, pieces."""
 
     def __init__(self, view_a: CArmView, pts_a: Any, view_b: CArmView, pts_b: Any,
-                 noise_px: float | None, min_angle_deg: float, depth_range_mm: float) -> None:
+                 noise_px: float | None, min_angle_deg: float, depth_range_mm: float,
+                 min_noise_px: float = MIN_NOISE_PX) -> None:
         self.pair = EpipolarPair(view_a, view_b)
         self.view_a, self.view_b = view_a, view_b
-        self.spl_a, self.sig_a = fit_curve_2d(pts_a, noise_px, "pts_a_px")
-        self.spl_b, self.sig_b = fit_curve_2d(pts_b, noise_px, "pts_b_px")
+        self.spl_a, self.sig_a = fit_curve_2d(pts_a, noise_px, "pts_a_px", min_noise_px)
+        self.spl_b, self.sig_b = fit_curve_2d(pts_b, noise_px, "pts_b_px", min_noise_px)
         self.dom_a = (float(self.spl_a.t[3]), float(self.spl_a.t[-4]))
         self.dom_b = (float(self.spl_b.t[3]), float(self.spl_b.t[-4]))
         self.depth_window = (view_a.sod_mm - depth_range_mm, view_a.sod_mm + depth_range_mm), (
@@ -687,6 +688,7 @@ def intersect_centrelines(
     method: str = "nurbs",
     *,
     noise_px: float | None = None,
+    min_noise_px: float = MIN_NOISE_PX,
     min_angle_deg: float = 10.0,
     depth_range_mm: float = 150.0,
     knot_spacing_px: float = 2.0,
@@ -706,6 +708,11 @@ def intersect_centrelines(
         (the paper's method). ``"epipolar"``: the point-wise epipolar baseline.
     noise_px : float, optional
         Noise sigma of the 2D points (px); estimated from the points if omitted.
+    min_noise_px : float
+        Floor under that estimate: ``vesselcad.splines.PIXEL_NOISE_PX`` for
+        skeleton pixels (their quantization, which the estimate misses: the
+        2D fits would follow the pixel steps and the 3D curve zig-zag in
+        depth); the default keeps exact projections exact.
     min_angle_deg : float
         Spans where a 2D tangent runs closer than this to the epipolar line are
         ill-conditioned and are bridged instead of intersected.
@@ -746,7 +753,8 @@ def intersect_centrelines(
         raise ArgumentError(f"knot_spacing_px: expected a positive value, got {knot_spacing_px!r}")
     from .kernel.centreline import Centreline3D
 
-    br = _Branch(view_a, pts_a_px, view_b, pts_b_px, noise_px, float(min_angle_deg), float(depth_range_mm))
+    br = _Branch(view_a, pts_a_px, view_b, pts_b_px, noise_px, float(min_angle_deg), float(depth_range_mm),
+                 min_noise_px)
     faces = None
     if method == "nurbs":
         samples, faces = _intersect_nurbs(br)

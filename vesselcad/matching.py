@@ -37,7 +37,7 @@ from .centreline2d import CentrelineGraph
 from .epipolar import backtrack
 from .errors import ArgumentError
 from .geometry import CArmView, check_view, reconstruction_error
-from .splines import arc_length, fit_curve_2d
+from .splines import PIXEL_NOISE_PX, arc_length, fit_curve_2d
 from .surface import QuadricSurface, fit_quadric_surface
 
 __all__ = ["LandmarkMatch", "BranchPair", "Unmatched", "GraphMatch", "match_graphs"]
@@ -194,9 +194,13 @@ class BranchPair:
         return float(self.b_range[1] - self.b_range[0])
 
     def splines(self, noise_px: float | None = None) -> tuple[interpolate.BSpline, interpolate.BSpline]:
-        """Cubic B-splines (px) of the two pieces, both in pair order."""
-        sa, _ = fit_curve_2d(self.points_a_px, noise_px, name=f"branch {self.a} (view A)")
-        sb, _ = fit_curve_2d(self.points_b_px, noise_px, name=f"branch {self.b} (view B)")
+        """Cubic B-splines (px) of the two pieces, both in pair order.
+
+        Smoothed by ``noise_px``, or by the noise estimated on each piece but at
+        least ``vesselcad.splines.PIXEL_NOISE_PX`` (the pieces are skeleton pixels).
+        """
+        sa, _ = fit_curve_2d(self.points_a_px, noise_px, f"branch {self.a} (view A)", PIXEL_NOISE_PX)
+        sb, _ = fit_curve_2d(self.points_b_px, noise_px, f"branch {self.b} (view B)", PIXEL_NOISE_PX)
         return sa, sb
 
 

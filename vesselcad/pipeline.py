@@ -33,7 +33,7 @@ from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
 from .phase import DISAGREE_MM, OBJECTS, PREFER_FILL, PhaseMatch, match_phase
 from .refine import Refinement, refine_geometry
 from .segment import Segmenter
-from .splines import resample_by_arclength
+from .splines import PIXEL_NOISE_PX, resample_by_arclength
 from .surface import semi_axes
 from .tree import TreeBranch, VesselTree, _reattached
 
@@ -499,7 +499,8 @@ def _branch_3d(k: int, pair: BranchPair, views: tuple[CArmView, CArmView], metho
     res = BranchResult(id=k, pair=pair)
     va, vb = views
     try:
-        curve = intersect_centrelines(va, pair.points_a_px, vb, pair.points_b_px, method=method)
+        curve = intersect_centrelines(va, pair.points_a_px, vb, pair.points_b_px, method=method,
+                                      min_noise_px=PIXEL_NOISE_PX)
         pts = curve.sample_every(0.5)
     except VesselcadError as exc:
         res.status = f"3D centreline failed: {exc}"

@@ -16,11 +16,18 @@ from scipy import interpolate, linalg, ndimage
 
 from .errors import ArgumentError
 
-__all__ = ["estimate_noise_px", "fit_curve_2d", "fit_pspline", "arc_length", "resample_by_arclength"]
+__all__ = ["estimate_noise_px", "fit_curve_2d", "fit_pspline", "arc_length", "resample_by_arclength",
+           "PIXEL_NOISE_PX"]
 
 #: Floor of the estimated noise: below this a fit is as exact as the data need
 #: (4 µm at the isocentre for 0.27 mm pixels) and the knot count stays small.
 MIN_NOISE_PX = 0.01
+#: Noise of points that are pixel centres of a skeleton (or were resampled along
+#: one): the true centreline lies anywhere in the pixel, a uniform error of
+#: standard deviation 1/sqrt(12) px per coordinate. The fourth differences see
+#: far less on a pixel staircase (a straight run of pixels has none, the steps
+#: are rare and regular), and a fit smoothed by that estimate follows the steps.
+PIXEL_NOISE_PX = float(1.0 / np.sqrt(12.0))
 
 
 def arc_length(points: np.ndarray) -> np.ndarray:
@@ -66,8 +73,8 @@ def _dedupe(points: np.ndarray) -> np.ndarray:
     return points[keep]
 
 
-def fit_curve_2d(points_px: Any, noise_px: float | None = None, name: str = "points_px"
-                 ) -> tuple[interpolate.BSpline, float]:
+def fit_curve_2d(points_px: Any, noise_px: float | None = None, name: str = "points_px",
+                 min_noise_px: float = MIN_NOISE_PX) -> tuple[interpolate.BSpline, float]:
     """Fit a clamped cubic B-spline to an ordered 2D polyline.
 
     The curve is parametrized by chord length in pixels (parameter 0 at the
@@ -81,6 +88,10 @@ def fit_curve_2d(points_px: Any, noise_px: float | None = None, name: str = "poi
         Noise sigma per coordinate; estimated from the points when omitted.
     name : str
         Argument name used in error messages.
+    min_noise_px : float
+        Floor under the estimated noise (not under a given ``noise_px``):
+        :data:`PIXEL_NOISE_PX` for skeleton pixels, whose quantization the
+        estimate misses; the default keeps exact projections (nearly) exact.
 
     Returns
     -------
@@ -105,7 +116,14 @@ def fit_curve_2d(points_px: Any, noise_px: float | None = None, name: str = "poi
     pts = _dedupe(pts)
     if len(pts) < 2:
         raise ArgumentError(f"{name}: a branch needs at least 2 distinct points, got {len(pts)}")
-    sigma = estimate_noise_px(pts) if noise_px is None else max(float(noise_px), MIN_NOISE_PX)
+    try:
+        floor = float(min_noise_px)
+    except (TypeError, ValueError):
+        floor = float("nan")
+    if not (np.isfinite(floor) and floor >= 0):
+        raise ArgumentError(f"min_noise_px: expected a finite value >= 0, got {min_noise_px!r}")
+    sigma = (max(estimate_noise_px(pts), floor) if noise_px is None
+             else max(float(noise_px), MIN_NOISE_PX))
     # Parametrize by the chord length of a lightly smoothed copy, so that noisy
     # points do not inflate the parameter: it stays close to the arc length in px.
     smooth = ndimage.gaussian_filter1d(pts, sigma=min(2.0, len(pts) / 6.0), axis=0, mode="nearest")
