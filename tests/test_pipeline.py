@@ -1011,7 +1011,7 @@ def test_depth_along_the_epipolar_lines_comes_from_the_hearts_surface():
     # nothing about its depth. Pushed 2 mm deeper along view A's rays (a wrong depth that
     # reprojects the same in view A), it goes back onto the sphere, to the true points; a vessel
     # crossing the epipolar planes keeps the depth the views gave it.
-    from vesselcad.pipeline import SURFACE_DEPTH_DEG, _depth_from_surface
+    from vesselcad.pipeline import _depth_from_surface
     from vesselcad.surface import QuadricSurface
 
     scale, radius = 30.0, 60.0
@@ -1040,7 +1040,7 @@ def test_depth_along_the_epipolar_lines_comes_from_the_hearts_surface():
     _depth_from_surface(results, (VIEW_A, VIEW_B), sphere)
     assert np.abs(results[0].points_mm - along).max() < 1e-6
     assert results[0].reprojection.max_px < 1e-6  # measured again, on the moved curve
-    assert f"within {SURFACE_DEPTH_DEG[1]:g} deg of the epipolar lines" in results[0].warnings[0]
+    assert "within 10 deg of the epipolar lines" in results[0].warnings[0]
     assert np.array_equal(results[1].points_mm, pushed(across, 2.0)) and results[1].warnings == []
     # a surface farther along the rays than SURFACE_DEPTH_MAX_MM (a 20 mm sphere here): untouched
     small = QuadricSurface(coefficients=np.array([2.25, 2.25, 2.25, 0, 0, 0, 0, 0, 0], float),

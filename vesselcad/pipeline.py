@@ -127,11 +127,8 @@ OFF_SURFACE_END_KEEP_MM = 2.0
 #: them in either view) two views barely fix its depth, and the depth along view A's rays is
 #: taken from the heart's surface fitted by the matching instead: wholly below the first
 #: angle, blended linearly up to the second (``_depth_from_surface``; docs/results.md, issue 13,
-#: 2026-12-05: on 24 phantom cases, true labels, 1.316 -> 1.269 mm, coverage 43.6 -> 44.4 %, with
-#: (5, 10)). Since the 2D fits are smoothed by the pixel quantization (2026-12-07) the curves'
-#: tangents no longer zig-zag across the band; (10, 20) gave on twelve true-label cases 43.2 %
-#: coverage at 1.272 mm against 42.5 % at 1.271 with (5, 10) and 43.1 % at 1.274 with (15, 30) ...
-SURFACE_DEPTH_DEG = (10.0, 20.0)
+#: 2026-12-05: on 24 phantom cases, true labels, 1.316 -> 1.269 mm, coverage 43.6 -> 44.4 %) ...
+SURFACE_DEPTH_DEG = (5.0, 10.0)
 #: ... where the surface lies at most this far (mm) along the ray from the two views' point ...
 SURFACE_DEPTH_MAX_MM = 5.0
 #: ... and only from a surface the tree's own points follow to within this spread (mm; the
