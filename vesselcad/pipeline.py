@@ -33,7 +33,7 @@ from .metrics import ReprojectionError, distance_to_polyline, reprojection_error
 from .phase import DISAGREE_MM, OBJECTS, PREFER_FILL, PhaseMatch, match_phase
 from .refine import Refinement, refine_geometry
 from .segment import Segmenter
-from .splines import PIXEL_NOISE_PX, resample_by_arclength
+from .splines import resample_by_arclength
 from .surface import semi_axes
 from .tree import TreeBranch, VesselTree, _reattached
 
@@ -499,8 +499,10 @@ def _branch_3d(k: int, pair: BranchPair, views: tuple[CArmView, CArmView], metho
     res = BranchResult(id=k, pair=pair)
     va, vb = views
     try:
-        curve = intersect_centrelines(va, pair.points_a_px, vb, pair.points_b_px, method=method,
-                                      min_noise_px=PIXEL_NOISE_PX)
+        # The 2D fits are smoothed by the noise the pieces show, not floored at their pixel
+        # quantization (``min_noise_px=PIXEL_NOISE_PX``: smoother and faster, but the steps
+        # downstream were tuned on the zig-zagging curves; docs/results.md, issue 13, 2026-12-07).
+        curve = intersect_centrelines(va, pair.points_a_px, vb, pair.points_b_px, method=method)
         pts = curve.sample_every(0.5)
     except VesselcadError as exc:
         res.status = f"3D centreline failed: {exc}"
