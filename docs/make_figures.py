@@ -14,6 +14,9 @@
 - junction_kept_inside.png: the junction of branches 16 and 9 of tests/data/mesh_partial_rca_2111.json
   (cs 2111), meshed as fused before and after children that would swallow their parent's end were
   kept inside it (``--junction`` makes only this one).
+- pixel_fit_real.png: a branch of a real expert mask (CIMAT 9), its skeleton pixels and the 2D fit
+  smoothed by the noise the fourth differences estimate and by at least the pixel quantization
+  (``--fit`` makes only this one).
 - report_html.png: ``vesselcad demo``'s report.html as headless Chromium shows it (offline);
   only with ``--report`` (needs Chromium and playwright, as tests/test_report_browser.py).
 """
@@ -146,6 +149,34 @@ def centreline_graph_real(path: Path) -> None:
         ax.set_axis_off()
     fig.suptitle("vc.centreline_graph on real expert masks: branches coloured, ends cyan, branch points "
                  "magenta, crossings orange, root red", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def pixel_fit_figure(path: Path) -> None:
+    """A real skeleton's 2D fit, with and without the pixel-quantization floor (docs/centreline3d.md)."""
+    from vesselcad.splines import MIN_NOISE_PX, PIXEL_NOISE_PX, fit_curve_2d
+
+    view = vc.CArmView(primary_deg=0.0, secondary_deg=0.0, sid_mm=1000.0, sod_mm=750.0,
+                       pixel_spacing_mm=(0.3, 0.3), rows=300, cols=300)
+    mask = cv2.imread(str(REAL / "train" / "9_gt.png"), 0) > 127
+    b = max(vc.centreline_graph(mask, view).branches, key=lambda b: b.length_px)
+    pts = b.points_px
+    c0, r0 = pts[len(pts) // 2]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 6))
+    titles = ("noise as estimated (4th differences)", "at least 1/sqrt(12) px")
+    for ax, floor, title in zip(axes, (MIN_NOISE_PX, PIXEL_NOISE_PX), titles, strict=True):
+        spline, sigma = fit_curve_2d(pts, min_noise_px=floor)
+        v = spline(np.linspace(spline.t[3], spline.t[-4], 4000))
+        ax.imshow(mask, cmap="gray", vmin=0, vmax=2)
+        ax.plot(pts[:, 0], pts[:, 1], "s", ms=5, mfc="none", mec="tab:orange", label="skeleton pixels")
+        ax.plot(v[:, 0], v[:, 1], "-", color="tab:red", lw=1.5,
+                label=f"fit: sigma {sigma:.3f} px, {len(spline.t) - 4} control points")
+        ax.set_xlim(c0 - 20, c0 + 20)
+        ax.set_ylim(r0 + 20, r0 - 20)
+        ax.set_title(f"CIMAT 9, branch {b.index}: {title}", fontsize=10)
+        ax.legend(loc="lower right", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
@@ -383,6 +414,9 @@ def main() -> int:
     if "--report" in sys.argv[1:]:
         report_screenshot(out / "report_html.png")
         return 0
+    if "--fit" in sys.argv[1:]:
+        pixel_fit_figure(out / "pixel_fit_real.png")
+        return 0
     geometry_figure(out / "geometry.png")
     with tempfile.TemporaryDirectory() as tmp:
         paths = write_case(generate_case(1, "cs", n_frames=40), tmp, preview=True)
@@ -392,6 +426,7 @@ def main() -> int:
     surface_figure(out / "surface_prior.png")
     large_frame_figure(out / "seg_real_1024.png")
     junction_figure(out / "junction_kept_inside.png")
+    pixel_fit_figure(out / "pixel_fit_real.png")
     print("wrote", *sorted(p.name for p in out.glob("*.png")))
     return 0
 
