@@ -158,7 +158,7 @@ def test_noisy_skeleton_accuracy():
 def test_pixel_skeletons_give_a_smooth_3d_curve_with_the_quantization_floor():
     # Both projections rounded to pixel centres (a skeleton's staircase): fitted by the noise the
     # fourth differences see (0.18 px here), the 2D curves follow the steps and the 3D curve
-    # zig-zags in depth (0.16 mm between samples 0.5 mm apart); with
+    # zig-zags in depth (second differences of 0.16 mm rms between samples 0.5 mm apart); with
     # the floor of 1/sqrt(12) px they follow the true projections and the 3D curve the true one.
     from vesselcad.splines import PIXEL_NOISE_PX
 
