@@ -125,6 +125,10 @@ def test_merge_collinear_segments_keeps_side_branch():
     s = np.linspace(*main.domain, 500)
     assert np.abs(main.spline(s)[:, :2]).max() < 1e-6  # still the z axis
     assert merged[2].parent == 0 and merged[2].parent_s_mm == pytest.approx(30.0, abs=0.05)
+    # the pipes' specs say which of the tree's branches each holds (report.json's in_solid)
+    specs = {s["id"]: s for s in tree.pipe_specs()}
+    assert set(specs) == {0, 2}
+    assert specs[0]["segments"] == (0, 1) and specs[2]["segments"] == (2,)
 
 
 def test_merge_rounds_a_kink_and_reports_it():

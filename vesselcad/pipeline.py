@@ -289,6 +289,47 @@ class Reconstruction:
     def ok_branches(self) -> list[BranchResult]:
         return [b for b in self.branches if b.ok]
 
+    @property
+    def solid_left_out(self) -> dict[int, str]:
+        """The tree's branches the solid does not hold, with the reason (branch id -> why).
+
+        The solid holds one tree; a branch of another tree, or one whose pipe or
+        union failed, or that hangs from such a branch, is listed here with
+        what :attr:`VesselSolid.failed` says of it (or of the merged vessel it
+        is part of). Empty when the solid holds every branch, and when there is
+        no solid (see :attr:`solid_share`).
+        """
+        if self.solid is None or self.tree is None:
+            return {}
+        held = set(self.solid.branch_ids)
+        failed = self.solid.failed
+        out: dict[int, str] = {}
+        placed: set[int] = set()
+        specs = self.solid.specs or [{"id": b.id, "segments": (b.id,)} for b in self.tree]
+        for spec in specs:
+            members = spec.get("segments") or (spec["id"],)
+            placed.update(members)
+            if spec["id"] in held:
+                continue
+            why = failed.get(spec["id"], "not in the solid")
+            for m in members:
+                out[int(m)] = why if m == spec["id"] else (f"merged into branch {spec['id']}, which was "
+                                                          f"left out: {why}")
+        for b in self.tree:  # stubs left out before any pipe was made
+            if b.id not in placed:
+                out[b.id] = failed.get(b.id, "not in the solid")
+        return out
+
+    @property
+    def solid_share(self) -> float | None:
+        """Share of the tree's centreline length (0-1) that the solid holds; None without a solid."""
+        if self.solid is None or self.tree is None:
+            return None
+        out = self.solid_left_out
+        total = sum(b.length_mm for b in self.tree)
+        kept = sum(b.length_mm for b in self.tree if b.id not in out)
+        return float(kept / total) if total > 0 else 0.0
+
     def __repr__(self) -> str:
         n = len(self.ok_branches)
         e = self.errors
@@ -311,7 +352,17 @@ class Reconstruction:
             chk = self.solid.validity()
             solid = {"valid": bool(chk["valid"]), "watertight": bool(chk["watertight"]),
                      "solids": int(chk.get("solids", 1)), "volume_mm3": round(float(self.solid.volume), 3),
-                     "failed": {str(k): v for k, v in self.solid.failed.items()}}
+                     "failed": {str(k): v for k, v in self.solid.failed.items()},
+                     "tree_share": round(float(self.solid_share or 0.0), 4)}
+        left_out = self.solid_left_out
+        branches = []
+        for b in self.branches:
+            d = b.to_dict()
+            # whether the solid (STEP/STL/GLB) holds the branch: null where there is no solid
+            # or no 3D branch; the reason where it does not
+            d["in_solid"] = None if self.solid is None or not b.ok else b.id not in left_out
+            d["solid_note"] = left_out.get(b.id) if d["in_solid"] is False else None
+            branches.append(d)
         phase = self.phase.to_dict()
         return {
             "vesselcad": _version(),
@@ -330,7 +381,7 @@ class Reconstruction:
                                         "range_px": u.range and [round(x, 2) for x in u.range]}
                                        for u in self.match.unmatched],
                          "surface": _surface_summary(self.match.surface)},
-            "branches": [b.to_dict() for b in self.branches],
+            "branches": branches,
             "reprojection": {k: round(v, 4) for k, v in self.errors.items()},
             "tree": None if self.tree is None else {"branches": len(self.tree),
                                                     "length_mm": round(self.tree.total_length_mm, 3)},

@@ -822,9 +822,11 @@ class VesselTree:
 
         Rebuilds (and merges) if needed, clamps the radius against curvature and
         at child starts, and moves a child's start onto its parent's centreline
-        when it lies off it. Returns dicts ``{'id', 'name', 'parent', 'spine',
+        when it lies off it. Returns dicts ``{'id', 'name', 'segments', 'parent', 'spine',
         'radius', 'cuts', 'end', 'warnings', 'stubs', 'r_parent', 'neck_mm', 'radius_unnecked',
         'not_inside'}`` and, for a domed end, ``'dome_openings'`` (``kernel.pipes.dome_openings``);
+        ``segments`` are the ids of the tree's branches the spec holds (more
+        than its own where branches were merged, or a stub became its start);
         ``cuts`` are the spine parameters (mm)
         where a pipe that would overlap itself is cut into pieces (empty for
         almost every branch); ``end`` is ``'dome'`` for a vessel whose children
@@ -884,6 +886,7 @@ class VesselTree:
             warns += w
             swept[bid] = replace(b, spline=spine, radius_law=law)
             specs.append({"id": b.id, "name": b.name, "parent": b.parent, "spine": spine,
+                          "segments": tuple(int(x) for x in (b.segments or (b.id,))),
                           "radius": law, "cuts": cuts, "end": "flat", "warnings": warns,
                           "stubs": stubs.get(b.id, {}), "r_parent": r_parent, "neck_mm": neck,
                           "radius_unnecked": unnecked,
