@@ -345,6 +345,51 @@ def test_overlay_marks_starts_joined_across_an_unpaired_stretch(recon, tmp_path)
     assert diff.sum() < 1000                                   # the two markers, nothing else
 
 
+def test_report_and_overlay_say_which_branches_the_solid_leaves_out(recon, tmp_path):
+    # The analytic tree's solid holds every reconstructed branch ...
+    import dataclasses
+
+    from PIL import Image
+
+    from vesselcad.report import _PALETTE, plot_overlays
+    from vesselcad.tree import TreeBranch
+
+    rep = recon.report()
+    assert all(b["in_solid"] is (True if b["status"] == "ok" else None) for b in rep["branches"])
+    assert all(b["solid_note"] is None for b in rep["branches"])
+    assert rep["solid"]["tree_share"] == 1.0 and recon.solid_left_out == {}
+    # ... but not a leaf moved 60 mm away: another, shorter tree, which one solid cannot hold
+    leaf = max({b.id for b in recon.tree} - {b.parent for b in recon.tree})
+    tree = vc.VesselTree([TreeBranch(id=b.id, parent=None if b.id == leaf else b.parent,
+                                     points=b.points + (60.0 if b.id == leaf else 0.0), radius=b.radius,
+                                     name=b.name, landmarks=b.landmarks, segments=b.segments)
+                          for b in recon.tree])
+    rec = dataclasses.replace(recon, tree=tree, solid=tree.solid(), warnings=list(recon.warnings))
+    assert set(rec.solid_left_out) == {leaf}
+    assert "root of another tree" in rec.solid_left_out[leaf]
+    lengths = {b.id: float(np.linalg.norm(np.diff(b.points, axis=0), axis=1).sum()) for b in recon.tree}
+    assert rec.solid_share == pytest.approx(1.0 - lengths[leaf] / sum(lengths.values()), rel=1e-6)
+    rep = rec.report()
+    row = next(b for b in rep["branches"] if b["id"] == leaf)
+    assert row["in_solid"] is False and "root of another tree" in row["solid_note"]
+    assert all(b["in_solid"] is True for b in rep["branches"] if b["status"] == "ok" and b["id"] != leaf)
+    assert rep["solid"]["tree_share"] == pytest.approx(rec.solid_share, abs=1e-4)
+    # the overlay draws the left-out branch dashed: about half its colour's pixels in each view
+    colour = _PALETTE[leaf % len(_PALETTE)].astype(int)
+
+    def coloured(r):
+        im = np.asarray(Image.open(plot_overlays(r, tmp_path / f"{id(r)}.png")).convert("RGB")).astype(int)
+        near = np.abs(im - colour).max(axis=2) < 30
+        half = im.shape[1] // 2
+        return near[:, :half].sum(), near[:, half:].sum()
+
+    for solid_px, dashed_px in zip(coloured(recon), coloured(rec), strict=True):
+        assert 0.3 * solid_px < dashed_px < 0.8 * solid_px
+    html = rec.write(tmp_path / "out")["report.html"].read_text()
+    assert f"holding <b>{rep['solid']['tree_share']:.0%}</b>" in html
+    assert "<td>no: the root of another tree" in html
+
+
 def test_cli_reconstruct_from_dicom(tmp_path):
     import build123d
     import trimesh

@@ -34,7 +34,8 @@ _PALETTE = np.array([[230, 25, 75], [60, 180, 75], [255, 225, 25], [0, 130, 200]
 def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
     """Both chosen frames: segmentation, 2D pieces (thin) and reprojected 3D centrelines (bold).
 
-    Each branch has one colour in both views; written atomically as PNG.
+    Each branch has one colour in both views; a branch the solid leaves out
+    (:attr:`Reconstruction.solid_left_out`) is dashed. Written atomically as PNG.
     """
     import matplotlib
 
@@ -44,6 +45,7 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
     from .pipeline import JOINED_NOTE
     from .segment import overlay_labels
 
+    left_out = rec.solid_left_out  # drawn dashed: the STEP/STL/GLB do not hold them
     fig, axes = plt.subplots(1, 2, figsize=(13, 6.8), dpi=100)
     for k, ax in enumerate(axes):
         frame, lab, view = rec.frames[k], rec.labels[k], rec.views[k]
@@ -54,7 +56,7 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
             ax.plot(piece[:, 0], piece[:, 1], "-", color="white", lw=0.8, alpha=0.9)
             if b.ok:
                 p = view.project(b.points_mm)
-                ax.plot(p[:, 0], p[:, 1], "-", color=c, lw=2.0)
+                ax.plot(p[:, 0], p[:, 1], ls=(0, (3, 2)) if b.id in left_out else "-", color=c, lw=2.0)
                 ax.text(p[len(p) // 2, 0], p[len(p) // 2, 1], str(b.id), color=c, fontsize=8,
                         fontweight="bold")
                 if any(w.startswith(JOINED_NOTE) for w in b.warnings):
@@ -79,8 +81,9 @@ def plot_overlays(rec: Reconstruction, path: str | Path) -> Path:
     e = rec.errors
     # two legend lines of about equal length (one of 190 characters ran past the figure's edges)
     fig.suptitle("segmentation (colours), matched 2D pieces (white), reprojected 3D centrelines (bold, "
-                 "numbered), failed branches (red dotted),\nroot of each view (yellow star), phase key "
-                 "point (cyan +), start joined to another tree across an unpaired stretch (magenta diamond)"
+                 "numbered; dashed: not in the solid), failed branches (red dotted),\nroot of each view "
+                 "(yellow star), phase key point (cyan +), start joined to another tree across an unpaired "
+                 "stretch (magenta diamond)"
                  + (f"\nreprojection {e['mean_px']:.2f} ± {e['sd_px']:.2f} px "
                     f"({e['mean_mm']:.3f} ± {e['sd_mm']:.3f} mm), max {e['max_px']:.2f} px" if e else ""),
                  fontsize=10)
@@ -254,9 +257,11 @@ def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_
         mm = "" if rm is None else f"{rm['mean']:.3f}"
         parent = "" if b["parent"] is None else str(b["parent"])
         ga, gb = b["graph_branches"]
+        held = {None: "", True: "yes"}.get(b["in_solid"], f"no: {b['solid_note']}")
         rows.append(f"<tr><td>{b['id']}</td><td>{ga} / {gb}</td><td>{b['found_by']}</td><td>{parent}</td>"
                     f"<td>{length}</td>"
-                    f"<td>{px}</td><td>{mm}</td><td>{html.escape(b['status'])}</td></tr>")
+                    f"<td>{px}</td><td>{mm}</td><td>{html.escape(b['status'])}</td>"
+                    f"<td>{html.escape(held)}</td></tr>")
     ref = report["refinement"]
     ref_txt = "off" if ref is None else (
         f"{'applied' if ref['applied'] else 'not applied'}: reconstruction error {ref['before_px']} px → "
@@ -272,7 +277,8 @@ def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_
            "points agree with view B's)"))
     solid = report["solid"]
     solid_txt = "not built" if solid is None else (
-        f"valid {solid['valid']}, watertight {solid['watertight']}, volume {solid['volume_mm3']:.1f} mm³"
+        f"valid {solid['valid']}, watertight {solid['watertight']}, volume {solid['volume_mm3']:.1f} mm³, "
+        f"holding <b>{solid['tree_share']:.0%}</b> of the reconstructed centreline length"
         + (f", left out: {html.escape(json.dumps(solid['failed']))}" if solid["failed"] else ""))
     warn = "".join(f"<li>{html.escape(w)}</li>" for w in rec.warnings) or "<li>none</li>"
     timing = ", ".join(f"{k} {v:.2f} s" for k, v in report["timings_s"].items())
@@ -322,7 +328,7 @@ LPS frame, seen from the front, head up.</div></div>
 </div>
 <h2>Branches</h2>
 <table><tr><th>id</th><th>2D branches A / B</th><th>paired by</th><th>parent</th><th>length mm</th>
-<th>reprojection px mean / max</th><th>mm mean</th><th>status</th></tr>
+<th>reprojection px mean / max</th><th>mm mean</th><th>status</th><th>in the solid</th></tr>
 {''.join(rows)}</table>
 <h2>Warnings</h2><ul>{warn}</ul>
 <p>Timings: {timing}. vesselcad {html.escape(report['vesselcad'])}.</p>
