@@ -57,6 +57,8 @@ def test_cli_batch_finishes_good_cases_reports_broken_and_resumes(archive, tmp_p
         assert (rep["frame_a"], rep["frame_b"]) == (int(r["frame_a"]), int(r["frame_b"]))
         assert 0 <= rep["frame_a"] < 8 and 0 <= rep["frame_b"] < 8
         assert int(r["branches_ok"]) >= 1 and r["solid_valid"] == "True" and r["solid_watertight"] == "True"
+        share = rep["solid"]["tree_share"]
+        assert float(r["solid_tree_share"]) == share and 0.0 < share <= 1.0
         # every written tree lies in the phantom's heart-sized region around the isocentre
         tree = json.loads((d / "centrelines.json").read_text())
         pts = np.concatenate([b["points"] for b in tree["branches"]])

@@ -48,7 +48,7 @@ STATUSES = ("ok", "no_tree", "error", "skipped")
 SUMMARY_COLUMNS = (
     "case", "status", "message", "seconds", "frame_a", "frame_b", "phase_error_mm", "branches_ok",
     "branches_total", "reprojection_mean_px", "reprojection_mean_mm", "solid_valid", "solid_watertight",
-    "refined", "warnings", "out", "run_a", "run_b",
+    "solid_tree_share", "refined", "warnings", "out", "run_a", "run_b",
 )
 
 _MANIFEST_ID = ("case", "id", "case_id")
@@ -352,6 +352,7 @@ def process_case(case: BatchCase, out: str | os.PathLike, options: dict[str, Any
             reprojection_mean_px=round(e["mean_px"], 4) if e else None,
             reprojection_mean_mm=round(e["mean_mm"], 4) if e else None,
             solid_valid=solid.get("valid"), solid_watertight=solid.get("watertight"),
+            solid_tree_share=solid.get("tree_share"),
             refined=rep["view_b"]["refined"], warnings=len(rec.warnings),
             timings_s={k: round(v, 3) for k, v in rec.timings.items()},
         )
