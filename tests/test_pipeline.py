@@ -374,6 +374,16 @@ def test_report_and_overlay_say_which_branches_the_solid_leaves_out(recon, tmp_p
     assert row["in_solid"] is False and "root of another tree" in row["solid_note"]
     assert all(b["in_solid"] is True for b in rep["branches"] if b["status"] == "ok" and b["id"] != leaf)
     assert rep["solid"]["tree_share"] == pytest.approx(rec.solid_share, abs=1e-4)
+    # a pipe that went into the union is held even where none of its faces is left (a branch wholly
+    # inside other vessels); one the union gave up is not
+    inner = next(b.id for b in recon.tree if b.parent is not None and b.id != leaf)
+    faces = [(f, t) for f, t in rec.solid.faces if t.branch_id != inner]
+    assert 0 < len(faces) < len(rec.solid.faces)
+    hidden = dataclasses.replace(rec, solid=dataclasses.replace(rec.solid, faces=faces))
+    assert inner not in hidden.solid.branch_ids and set(hidden.solid_left_out) == {leaf}
+    given_up = dataclasses.replace(hidden, solid=dataclasses.replace(
+        hidden.solid, failed={**rec.solid.failed, inner: "the boolean union with the tree failed"}))
+    assert given_up.solid_left_out[inner] == "the boolean union with the tree failed"
     # the overlay draws the left-out branch dashed: about half its colour's pixels in each view
     colour = _PALETTE[leaf % len(_PALETTE)].astype(int)
 
