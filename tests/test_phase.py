@@ -440,6 +440,7 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
     assert 0.0 <= t["coverage"] <= 1.0 and t["truth_length_mm"] > 100
     if (tmp_path / "tree.stl").is_file():
         assert trimesh.load(tmp_path / "tree.stl").is_watertight
+        assert summary["solid_tree_share"] == report["solid"]["tree_share"]
 
 
 def test_pair_choice_prefers_filled_frames():

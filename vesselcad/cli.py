@@ -57,6 +57,11 @@ def _print_reconstruction(rec, paths: dict, out: Path) -> None:
               f"{r.after_px:.2f} px)")
     if rec.solid is not None:
         print(f"solid: {rec.solid!r}")
+        out_ids = rec.solid_left_out
+        if out_ids:
+            ids = ", ".join(map(str, sorted(out_ids)))
+            print(f"  it holds {rec.solid_share:.0%} of the tree's centreline length; "
+                  f"{len(out_ids)} branches left out ({ids}: dashed in overlay.png, reasons in report.json)")
     print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in rec.timings.items()))
     for w in rec.warnings[:12]:
         print(f"  warning: {w}")
@@ -210,6 +215,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         "truth": truth,
         "reprojection": {k: round(v, 4) for k, v in rec.errors.items()},
         "branches": [len(rec.ok_branches), len(rec.branches)],
+        "solid_tree_share": None if rec.solid_share is None else round(rec.solid_share, 4),
         "seconds": round(time.perf_counter() - t0, 2),
         "timings_s": {k: round(v, 3) for k, v in rec.timings.items()},
     }
