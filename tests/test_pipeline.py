@@ -398,6 +398,17 @@ def test_report_and_overlay_say_which_branches_the_solid_leaves_out(recon, tmp_p
     html = rec.write(tmp_path / "out")["report.html"].read_text()
     assert f"holding <b>{rep['solid']['tree_share']:.0%}</b>" in html
     assert "<td>no: the root of another tree" in html
+    # the 3D view draws the left-out centreline apart (orange): its segments, and only its
+    import base64
+
+    def floats(tag):
+        text = re.search(f'id="{tag}">([^<]*)<', html).group(1)
+        return np.frombuffer(base64.b64decode(text), "<f4").reshape(-1, 3)
+
+    pts = next(b for b in rec.branches if b.id == leaf).points_mm
+    np.testing.assert_allclose(floats("lines-out-vertices"), np.repeat(pts, 2, axis=0)[1:-1], atol=1e-4)
+    n_held = sum(2 * (len(b.points_mm) - 1) for b in rec.ok_branches if b.id != leaf)
+    assert len(floats("lines-vertices")) == n_held
 
 
 def test_cli_reconstruct_from_dicom(tmp_path):

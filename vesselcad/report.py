@@ -157,7 +157,7 @@ _VIEWER_JS = r"""
     return new T(u.buffer);
   }
   const P = dec('mesh-vertices', Float32Array), F = dec('mesh-faces', Uint32Array);
-  const L = dec('lines-vertices', Float32Array);
+  const L = dec('lines-vertices', Float32Array), LO = dec('lines-out-vertices', Float32Array);
   const nv = P.length / 3;
   let c = [0, 0, 0], lo = [1e9, 1e9, 1e9], hi = [-1e9, -1e9, -1e9];
   const all = P.length ? P : L;
@@ -183,12 +183,13 @@ _VIEWER_JS = r"""
     'float l = 0.25 + 0.75 * abs(dot(n, normalize(vec3(0.3, 0.5, 1.0))));' +
     'gl_FragColor = vec4(vec3(0.85, 0.25, 0.22) * l, 1.0); }');
   const pl = prog('attribute vec3 p; uniform mat4 M; void main(){ gl_Position = M * vec4(p, 1.0); }',
-    'precision mediump float; void main(){ gl_FragColor = vec4(0.1, 0.2, 0.9, 1.0); }');
+    'precision mediump float; uniform vec3 C; void main(){ gl_FragColor = vec4(C, 1.0); }');
   function attr(p, name, b) { const a = gl.getAttribLocation(p, name); gl.bindBuffer(gl.ARRAY_BUFFER, b);
     gl.enableVertexAttribArray(a); gl.vertexAttribPointer(a, 3, gl.FLOAT, false, 0, 0); return a; }
   function buf(data, target) { const b = gl.createBuffer(); gl.bindBuffer(target, b);
     gl.bufferData(target, data, gl.STATIC_DRAW); return b; }
   const bp = buf(P, gl.ARRAY_BUFFER), bn = buf(N, gl.ARRAY_BUFFER), bl = buf(L, gl.ARRAY_BUFFER);
+  const blo = buf(LO, gl.ARRAY_BUFFER);
   const ext = gl.getExtension('OES_element_index_uint');
   const bf = buf(ext ? F : new Uint16Array(F), gl.ELEMENT_ARRAY_BUFFER);
   let yaw = 0.6, pitch = -0.4, zoom = 1.0, drag = null;
@@ -227,11 +228,14 @@ _VIEWER_JS = r"""
       gl.drawElements(gl.TRIANGLES, F.length, ext ? gl.UNSIGNED_INT : gl.UNSIGNED_SHORT, 0);
       gl.disableVertexAttribArray(an);
     }
-    if (L.length) {
+    // centrelines the solid holds (blue) and those it leaves out (orange), over the solid
+    for (const [V, b, col] of [[L, bl, [0.1, 0.2, 0.9]], [LO, blo, [0.95, 0.55, 0.05]]]) {
+      if (!V.length) continue;
       gl.useProgram(pl); gl.disable(gl.DEPTH_TEST);
       gl.uniformMatrix4fv(gl.getUniformLocation(pl, 'M'), false, M);
-      attr(pl, 'p', bl);
-      gl.drawArrays(gl.LINES, 0, L.length / 3);
+      gl.uniform3fv(gl.getUniformLocation(pl, 'C'), col);
+      attr(pl, 'p', b);
+      gl.drawArrays(gl.LINES, 0, V.length / 3);
     }
   }
   draw();
@@ -243,11 +247,12 @@ _VIEWER_JS = r"""
 
 def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_png: Path,
           verts: np.ndarray, faces: np.ndarray, mesh_kind: str) -> str:
-    lines = []
+    left_out = rec.solid_left_out
+    lines: dict[bool, list[np.ndarray]] = {False: [], True: []}  # held, left out of the solid
     for b in rec.ok_branches:
         p = b.points_mm
-        lines.append(np.stack([p[:-1], p[1:]], axis=1).reshape(-1, 3))
-    lv = np.vstack(lines) if lines else np.zeros((0, 3))
+        lines[b.id in left_out].append(np.stack([p[:-1], p[1:]], axis=1).reshape(-1, 3))
+    lv, lo = (np.vstack(lines[k]) if lines[k] else np.zeros((0, 3)) for k in (False, True))
     e = rec.errors
     rows = []
     for b in report["branches"]:
@@ -320,7 +325,8 @@ Reprojection error: <b>{rep_txt}</b>. Solid: {solid_txt}. Geometry refinement: {
 <div class="grid">
 <div><h2>3D tree</h2>
 <canvas id="view3d" width="640" height="520"></canvas>
-<div id="view3d-status">loading…</div><div>Shown: {html.escape(mesh_kind)} (red), centrelines (blue).
+<div id="view3d-status">loading…</div><div>Shown: {html.escape(mesh_kind)} (red), centrelines (blue; orange
+where the solid leaves them out).
 LPS frame, seen from the front, head up.</div></div>
 <div><h2>Motion phase</h2>
 <img id="phase" alt="phase error matrix" src="data:image/png;base64,{_png_b64(phase_png)}"
@@ -335,6 +341,7 @@ LPS frame, seen from the front, head up.</div></div>
 <script type="application/octet-stream" id="mesh-vertices">{_b64(verts, '<f4')}</script>
 <script type="application/octet-stream" id="mesh-faces">{_b64(faces, '<u4')}</script>
 <script type="application/octet-stream" id="lines-vertices">{_b64(lv, '<f4')}</script>
+<script type="application/octet-stream" id="lines-out-vertices">{_b64(lo, '<f4')}</script>
 <script>{_VIEWER_JS}</script>
 </body></html>
 """
