@@ -132,7 +132,6 @@ def run_case(seed: int, kind: str, n_frames: int, variant: str, workdir: Path,
 
         row["volume_vs_tubes"] = float(rec.solid.volume / reference_volume(solid_tubes(rec.solid)) - 1.0)
     row["solid_pipes"] = 0 if rec.solid is None else len(rec.solid.branch_ids)
-    # share of the 3D tree's length that the solid holds (merged pipes are named a/b/...)
     row["in_solid"] = rec.solid_share or 0.0  # share of the tree's centreline length the solid holds
     row["refined"] = bool(rec.refinement is not None and rec.refinement.applied)
     # frames the model labelled for the phase matching (all of them without the coarse search)

@@ -330,9 +330,11 @@ class Reconstruction:
         """Share of the tree's centreline length (0-1) that the solid holds; None without a solid."""
         if self.solid is None or self.tree is None:
             return None
-        out = self.solid_left_out
+        return self._share_held(self.solid_left_out)
+
+    def _share_held(self, left_out: dict[int, str]) -> float:
         total = sum(b.length_mm for b in self.tree)
-        kept = sum(b.length_mm for b in self.tree if b.id not in out)
+        kept = sum(b.length_mm for b in self.tree if b.id not in left_out)
         return float(kept / total) if total > 0 else 0.0
 
     def __repr__(self) -> str:
@@ -353,13 +355,13 @@ class Reconstruction:
                                                                                  and ref.applied),
                           "header": h.to_dict(), "used": v.to_dict()}
         solid = None
+        left_out = self.solid_left_out
         if self.solid is not None:
             chk = self.solid.validity()
             solid = {"valid": bool(chk["valid"]), "watertight": bool(chk["watertight"]),
                      "solids": int(chk.get("solids", 1)), "volume_mm3": round(float(self.solid.volume), 3),
                      "failed": {str(k): v for k, v in self.solid.failed.items()},
-                     "tree_share": round(float(self.solid_share or 0.0), 4)}
-        left_out = self.solid_left_out
+                     "tree_share": round(self._share_held(left_out), 4) if self.tree is not None else 0.0}
         branches = []
         for b in self.branches:
             d = b.to_dict()

@@ -247,7 +247,7 @@ _VIEWER_JS = r"""
 
 def _html(rec: Reconstruction, report: dict[str, Any], overlay_png: Path, phase_png: Path,
           verts: np.ndarray, faces: np.ndarray, mesh_kind: str) -> str:
-    left_out = rec.solid_left_out
+    left_out = {b["id"] for b in report["branches"] if b["in_solid"] is False}
     lines: dict[bool, list[np.ndarray]] = {False: [], True: []}  # held, left out of the solid
     for b in rec.ok_branches:
         p = b.points_mm
