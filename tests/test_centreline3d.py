@@ -196,6 +196,48 @@ def test_branch_in_an_epipolar_plane_is_bridged_not_raised():
     assert truth_distance(c.sample(200), truth).max() < 0.5
 
 
+def ray_segment(view: vc.CArmView, pixel: tuple[float, float], depths: tuple[float, float],
+                n: int = 401) -> np.ndarray:
+    """A straight vessel along ``view``'s X-ray through ``pixel``, between two distances from its source."""
+    o, d = view.ray(np.asarray(pixel, dtype=float))
+    return o + np.outer(np.linspace(*depths, n), d)
+
+
+@pytest.mark.parametrize("method", ["nurbs", "epipolar"])
+def test_vessel_seen_end_on_is_the_segment_along_that_ray(method):
+    # 30 mm running along view A's ray: a skeleton of one pixel there, a line in view B.
+    truth = ray_segment(VA, (240.3, 275.6), (735.0, 765.0))
+    end_on = np.round(VA.project(truth))  # every point on pixel (240, 276)
+    assert len(np.unique(end_on, axis=0)) == 1
+    long_b = skeleton_like(truth, VB)
+    c = vc.intersect_centrelines(VA, end_on, VB, long_b, method=method)
+    assert "seen end-on in view A" in c.warnings[0] and len(c.warnings) == 1
+    # the ray through the pixel centre lies within 0.5 px (0.3 mm at the source's distance) of the truth
+    assert truth_distance(c.sample(100), truth).max() < 0.35
+    assert c.length == pytest.approx(30.0, abs=0.6)
+    assert np.linalg.norm(c.sample(2)[0] - truth[0]) < 0.6  # proximal first, like the input
+    # the other way round: view B sees it end-on
+    truth_b = ray_segment(VB, (300.0, 200.0), (740.0, 760.0))
+    c = vc.intersect_centrelines(VA, skeleton_like(truth_b, VA), VB, np.round(VB.project(truth_b)),
+                                 method=method)
+    assert "seen end-on in view B" in c.warnings[0]
+    assert truth_distance(c.sample(100), truth_b).max() < 0.35
+
+
+def test_end_on_with_a_curve_off_its_epipolar_line_warns_and_out_of_depth_raises():
+    truth = ray_segment(VA, (240.0, 276.0), (735.0, 765.0))
+    point = VA.project(truth)
+    line_b = skeleton_like(truth, VB)
+    bent = line_b + np.linspace(0.0, 1.0, len(line_b))[:, None] * [0.0, 12.0]  # 12 px off at its far end
+    c = vc.intersect_centrelines(VA, point, VB, bent)
+    assert any("not one vessel seen end-on" in w for w in c.warnings)
+    far = ray_segment(VA, (240.0, 276.0), (1000.0, 1060.0))  # 250 mm beyond the isocentre
+    with pytest.raises(vc.ArgumentError, match="depth_range_mm"):
+        vc.intersect_centrelines(VA, VA.project(far), VB, VB.project(far))
+    with pytest.raises(vc.ArgumentError, match="identical"):
+        vc.intersect_centrelines(VA, point, VA, skeleton_like(segment(), VA))
+
+
 @pytest.mark.parametrize(
     "pts, match",
     [

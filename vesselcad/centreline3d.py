@@ -27,6 +27,11 @@ The baseline (``method="epipolar"``) is the classic point-wise method the
 paper compares against: dense samples along curve A, sub-pixel intersection of
 each sample's epipolar line with curve B under the same ordering, mid-point
 triangulation, then the same bridging and B-spline fit.
+
+A vessel seen end-on in one view (running along that view's X-ray, its whole
+2D curve within :data:`END_ON_PX` of one point) has no surface there to
+intersect: either method then returns the straight segment along that ray
+which the other view's rays cross (docs/centreline3d.md, "Seen end-on").
 """
 
 from __future__ import annotations
@@ -47,6 +52,16 @@ if TYPE_CHECKING:  # OCCT is imported on first use, keeping `import vesselcad` l
 __all__ = ["intersect_centrelines", "METHODS"]
 
 METHODS = ("nurbs", "epipolar")
+
+#: A 2D curve all within less than this distance (px) of one point (one skeleton pixel) is the
+#: vessel seen end-on (along the X-ray), when the other view's curve spans at least
+#: ``END_ON_MIN_PX`` end to end. Two pixels apart or more, the regular path bridges between
+#: the triangulated ends, which follows a short foreshortened stretch better.
+END_ON_PX = 0.5
+END_ON_MIN_PX = 4.0
+#: Largest distance (px) of the other view's curve from the end-on ray's epipolar line
+#: before a warning says the two curves are not one vessel seen end-on.
+_END_ON_MISS_PX = 3.0
 
 #: Grid step (px) of the ordered correspondence, and its largest sample count.
 _DTW_STEP_PX = 1.0
@@ -725,13 +740,19 @@ def intersect_centrelines(
     -------
     Centreline3D
         Ordered like ``pts_a_px``; ``curve`` is the ``Geom_BSplineCurve``.
+        Where one curve lies within less than :data:`END_ON_PX` of one point while
+        the other spans at least :data:`END_ON_MIN_PX` (the vessel seen end-on in
+        the first view), the straight segment along that view's ray that the
+        other view's rays cross, parametrized by the other curve's chord length,
+        with a warning saying so (and ``faces`` None).
 
     Raises
     ------
     ArgumentError
         Fewer than 2 distinct points, non-finite or non-numeric values, identical
         views, curves given from opposite ends, an unknown method or out-of-range
-        options.
+        options; an end-on segment whose ends lie outside ``depth_range_mm`` of the
+        isocentre.
 
     Examples
     --------
@@ -753,6 +774,9 @@ def intersect_centrelines(
         raise ArgumentError(f"knot_spacing_px: expected a positive value, got {knot_spacing_px!r}")
     from .kernel.centreline import Centreline3D
 
+    end_on = _end_on_view(pts_a_px, pts_b_px)
+    if end_on is not None:
+        return _end_on_centreline(view_a, pts_a_px, view_b, pts_b_px, end_on, method, float(depth_range_mm))
     br = _Branch(view_a, pts_a_px, view_b, pts_b_px, noise_px, float(min_angle_deg), float(depth_range_mm),
                  min_noise_px)
     faces = None
@@ -783,3 +807,78 @@ def intersect_centrelines(
         faces=faces,
         warnings=warnings,
     )
+
+
+def _curve_points(x: Any) -> np.ndarray | None:
+    """``x`` (points or a 2D BSpline) as finite (n, 2) points, or None if it is not that."""
+    try:
+        if isinstance(x, interpolate.BSpline):
+            k = x.k
+            p = np.asarray(x(np.linspace(x.t[k], x.t[-k - 1], 200)), dtype=float)
+        else:
+            p = np.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2 or not np.isfinite(p).all():
+        return None
+    return p
+
+
+def _end_on_view(pts_a: Any, pts_b: Any) -> str | None:
+    """'a' or 'b' where that view's curve is one point and the other's a curve, else None.
+
+    Input that is not valid points is left to the regular path's checks.
+    """
+    pa, pb = _curve_points(pts_a), _curve_points(pts_b)
+    if pa is None or pb is None:
+        return None
+    spread = [float(np.linalg.norm(p - p.mean(axis=0), axis=1).max()) for p in (pa, pb)]
+    chord = [float(np.linalg.norm(p[-1] - p[0])) for p in (pa, pb)]
+    if spread[0] < END_ON_PX and chord[1] >= END_ON_MIN_PX:
+        return "a"
+    if spread[1] < END_ON_PX and chord[0] >= END_ON_MIN_PX:
+        return "b"
+    return None
+
+
+def _end_on_centreline(view_a: CArmView, pts_a: Any, view_b: CArmView, pts_b: Any, which: str,
+                       method: str, depth_range_mm: float) -> Centreline3D:
+    """The straight segment along the end-on view's ray that the other view's rays cross.
+
+    The 3D points of a vessel that one view sees as a point lie on that
+    view's ray through it; where along the ray each lies, the other view's
+    rays say (they cross it at the view pair's angle, well conditioned).
+    The segment runs between the crossings of the other curve's first and
+    last rays, parametrized by that curve's chord length.
+    """
+    from .kernel.centreline import Centreline3D
+
+    EpipolarPair(view_a, view_b)  # the views' own checks (identical views)
+    pa, pb = _curve_points(pts_a), _curve_points(pts_b)
+    assert pa is not None and pb is not None
+    (vp, pp, name_p), (vq, pq, name_q) = (((view_a, pa, "A"), (view_b, pb, "B")) if which == "a"
+                                          else ((view_b, pb, "B"), (view_a, pa, "A")))
+    o, d = vp.ray(pp.mean(axis=0))
+    oq, dq = vq.ray(pq)
+    # Closest point of ray p to each ray q: o + t d, t from the 2x2 normal equations.
+    w = o - oq
+    c = dq @ d
+    t = (c * (dq @ w) - d @ w) / np.maximum(1.0 - c**2, 1e-12)
+    lo, hi = vp.sod_mm - depth_range_mm, vp.sod_mm + depth_range_mm
+    if not (lo <= t[0] <= hi and lo <= t[-1] <= hi):
+        raise ArgumentError(
+            f"pts_{name_q.lower()}_px: its rays cross view {name_p}'s end-on ray {t[0]:.0f}-{t[-1]:.0f} mm "
+            f"from view {name_p}'s source, outside {lo:.0f}-{hi:.0f} mm "
+            "(depth_range_mm around the isocentre)")
+    ends = o + np.outer([t[0], t[-1]], d)
+    chord = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pq, axis=0), axis=1))]
+    length = float(chord[-1])
+    spline = interpolate.BSpline(np.r_[[0.0] * 4, [length] * 4], np.linspace(ends[0], ends[1], 4), 3)
+    miss = float(np.max(np.linalg.norm(vq.project(o + np.outer(t, d)) - pq, axis=1)))
+    warnings = [f"seen end-on in view {name_p} (one point there): a straight segment along its X-ray, "
+                f"placed by view {name_q}'s curve"]
+    if miss > _END_ON_MISS_PX:
+        warnings.append(f"view {name_q}'s curve leaves the end-on ray's epipolar line by up to "
+                        f"{miss:.1f} px: the two curves are not one vessel seen end-on")
+    return Centreline3D(spline=spline, method=method, ill_conditioned_fraction=0.0, ill_conditioned_spans=[],
+                        n_pieces=1, noise_px=(0.0, 0.0), faces=None, warnings=warnings)

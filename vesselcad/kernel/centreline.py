@@ -26,7 +26,8 @@ class Centreline3D:
     ----------
     curve : OCP.Geom.Geom_BSplineCurve
         The curve for OCCT; its parameter is the chord length (px) of the
-        view-A 2D curve, so ``curve.Value(u)`` projects onto that curve at ``u``.
+        view-A 2D curve, so ``curve.Value(u)`` projects onto that curve at ``u``
+        (for a vessel seen end-on in view A, the view-B curve's chord length).
     method : str
         ``"nurbs"`` (surface intersection) or ``"epipolar"`` (point-wise baseline).
     ill_conditioned_fraction : float
