@@ -29,7 +29,7 @@ each sample's epipolar line with curve B under the same ordering, mid-point
 triangulation, then the same bridging and B-spline fit.
 
 A vessel seen end-on in one view (running along that view's X-ray, its whole
-2D curve within :data:`END_ON_PX` of one point) has no surface there to
+2D curve within less than :data:`END_ON_PX` of one point) has no surface there to
 intersect: either method then returns the straight segment along that ray
 which the other view's rays cross (docs/centreline3d.md, "Seen end-on").
 """
@@ -855,7 +855,8 @@ def _end_on_centreline(view_a: CArmView, pts_a: Any, view_b: CArmView, pts_b: An
 
     EpipolarPair(view_a, view_b)  # the views' own checks (identical views)
     pa, pb = _curve_points(pts_a), _curve_points(pts_b)
-    assert pa is not None and pb is not None
+    if pa is None or pb is None:  # _end_on_view checked them; kept for type checkers
+        raise ArgumentError("pts_a_px, pts_b_px: expected (n, 2) arrays of finite (col, row) pixels")
     (vp, pp, name_p), (vq, pq, name_q) = (((view_a, pa, "A"), (view_b, pb, "B")) if which == "a"
                                           else ((view_b, pb, "B"), (view_a, pa, "A")))
     o, d = vp.ray(pp.mean(axis=0))
