@@ -859,12 +859,11 @@ def _end_on_centreline(view_a: CArmView, pts_a: Any, view_b: CArmView, pts_b: An
         raise ArgumentError("pts_a_px, pts_b_px: expected (n, 2) arrays of finite (col, row) pixels")
     (vp, pp, name_p), (vq, pq, name_q) = (((view_a, pa, "A"), (view_b, pb, "B")) if which == "a"
                                           else ((view_b, pb, "B"), (view_a, pa, "A")))
-    o, d = vp.ray(pp.mean(axis=0))
-    oq, dq = vq.ray(pq)
-    # Closest point of ray p to each ray q: o + t d, t from the 2x2 normal equations.
-    w = o - oq
-    c = dq @ d
-    t = (c * (dq @ w) - d @ w) / np.maximum(1.0 - c**2, 1e-12)
+    point = pp.mean(axis=0)
+    o, d = vp.ray(point)
+    # Where each ray q crosses ray p: the mid-point of their shortest segment lies at the same
+    # distance along ray p as the segment's end on it (the segment is perpendicular to ray p).
+    t = (triangulate(vp, point, vq, pq) - o) @ d
     lo, hi = vp.sod_mm - depth_range_mm, vp.sod_mm + depth_range_mm
     if not (lo <= t[0] <= hi and lo <= t[-1] <= hi):
         raise ArgumentError(
