@@ -236,6 +236,11 @@ def test_end_on_with_a_curve_off_its_epipolar_line_warns_and_out_of_depth_raises
         vc.intersect_centrelines(VA, VA.project(far), VB, VB.project(far))
     with pytest.raises(vc.ArgumentError, match="identical"):
         vc.intersect_centrelines(VA, point, VA, skeleton_like(segment(), VA))
+    # bad input beside a one-point curve is named as such, not taken for the one point's fault
+    for bad, match in (("abc", r"pts_b_px: expected an \(n, 2\)"), (np.zeros((5, 3)), r"pts_b_px: expected"),
+                       (np.r_[line_b, [[np.nan, 1.0]]], "pts_b_px: contains non-finite")):
+        with pytest.raises(vc.ArgumentError, match=match):
+            vc.intersect_centrelines(VA, point, VB, bad)
 
 
 @pytest.mark.parametrize(

@@ -774,6 +774,9 @@ def intersect_centrelines(
         raise ArgumentError(f"knot_spacing_px: expected a positive value, got {knot_spacing_px!r}")
     from .kernel.centreline import Centreline3D
 
+    for pts, name in ((pts_a_px, "pts_a_px"), (pts_b_px, "pts_b_px")):
+        if _curve_points(pts) is None:  # not (n, 2) finite points: the fit's checks name what is wrong
+            fit_curve_2d(pts, noise_px, name, min_noise_px)
     end_on = _end_on_view(pts_a_px, pts_b_px)
     if end_on is not None:
         return _end_on_centreline(view_a, pts_a_px, view_b, pts_b_px, end_on, method, float(depth_range_mm))
